@@ -1,0 +1,368 @@
+// DSS rasteriser and visibility gradient on the CPU.
+//
+// One contract with the pure-torch reference (dss/rasterizer/reference.py,
+// dss/visibility/reference.py): same inputs (packed screen-space splats, see dss/splats.py),
+// same per-pixel tests in the same float32 operation order (compiled with -ffp-contract=off so
+// no fused multiply-add changes a rounding), same (depth, index) ordering of the top-K cache.
+//
+// Work is split over screen tiles (forward) and over points (backward) and handed out
+// dynamically from an atomic counter inside at::parallel_for, so one view still uses every core
+// and the object's uneven screen coverage does not leave a thread idle.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+namespace {
+
+constexpr int kFields = 10;  // u v conic_a conic_b2 conic_c norm depth rx ry valid
+constexpr int kTile = 16;
+
+struct Box {
+  int j0, j1, i0, i1;
+};
+
+// Same arithmetic as reference.bbox(): float32 floor/ceil, then clamps.
+inline Box splat_box(const float* s, int H, int W) {
+  auto clampf = [](float x, float lo, float hi) { return std::min(std::max(x, lo), hi); };
+  float j0 = clampf(std::floor(s[0] - s[7] - 0.5f), -1.f, (float)W) - 1.f;
+  float j1 = clampf(std::ceil(s[0] + s[7] - 0.5f), -1.f, (float)W) + 1.f;
+  float i0 = clampf(std::floor(s[1] - s[8] - 0.5f), -1.f, (float)H) - 1.f;
+  float i1 = clampf(std::ceil(s[1] + s[8] - 0.5f), -1.f, (float)H) + 1.f;
+  Box b;
+  b.j0 = (int)clampf(j0, 0.f, (float)(W - 1));
+  b.j1 = (int)clampf(j1, 0.f, (float)(W - 1));
+  b.i0 = (int)clampf(i0, 0.f, (float)(H - 1));
+  b.i1 = (int)clampf(i1, 0.f, (float)(H - 1));
+  return b;
+}
+
+inline float quad(const float* s, float dx, float dy) {
+  // (a*dx)*dx + (b2*dx)*dy + (c*dy)*dy, left to right, as torch evaluates it.
+  float t1 = s[2] * dx * dx;
+  float t2 = s[3] * dx * dy;
+  float t3 = s[4] * dy * dy;
+  return (t1 + t2) + t3;
+}
+
+// Run fn(item) for item in [0, n) on all intra-op threads, items handed out dynamically.
+template <typename F>
+void dynamic_for(int64_t n, int64_t chunk, const F& fn) {
+  std::atomic<int64_t> next(0);
+  int nthreads = std::max<int>(1, at::get_num_threads());
+  at::parallel_for(0, nthreads, 1, [&](int64_t, int64_t) {
+    while (true) {
+      int64_t start = next.fetch_add(chunk);
+      if (start >= n) break;
+      int64_t end = std::min(n, start + chunk);
+      for (int64_t it = start; it < end; ++it) fn(it);
+    }
+  });
+}
+
+}  // namespace
+
+// Forward: top-K cache per pixel and (optionally) the blended image.
+// packed (V,N,10) f32, attrs (V,N,C) f32 or empty, background (C) f32.
+std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor attrs, int64_t H, int64_t W,
+                                             int64_t K, double cutoff_d, double merge_d, torch::Tensor background) {
+  TORCH_CHECK(packed.dim() == 3 && packed.size(2) == kFields, "packed splats must be (V,N,10)");
+  packed = packed.contiguous().to(torch::kFloat32);
+  const int64_t V = packed.size(0), N = packed.size(1);
+  const bool do_blend = attrs.numel() > 0;
+  const int64_t C = do_blend ? attrs.size(2) : 0;
+  if (do_blend) {
+    TORCH_CHECK(attrs.size(0) == V && attrs.size(1) == N, "attrs must be (V,N,C)");
+    attrs = attrs.contiguous().to(torch::kFloat32);
+    background = background.contiguous().to(torch::kFloat32);
+    TORCH_CHECK(background.numel() == C, "background must have C entries");
+  }
+  const float cutoff = (float)cutoff_d, merge = (float)merge_d;
+  auto fopt = torch::TensorOptions().dtype(torch::kFloat32);
+  auto idx = torch::full({V, H, W, K}, -1, torch::TensorOptions().dtype(torch::kInt32));
+  auto depth = torch::full({V, H, W, K}, std::numeric_limits<float>::infinity(), fopt);
+  auto rho = torch::zeros({V, H, W, K}, fopt);
+  auto images = do_blend ? torch::empty({V, H, W, C}, fopt) : torch::empty({0}, fopt);
+  auto mask = torch::zeros({V, H, W}, torch::TensorOptions().dtype(torch::kBool));
+
+  const float* P = packed.data_ptr<float>();
+  const int64_t TX = (W + kTile - 1) / kTile, TY = (H + kTile - 1) / kTile, T = TX * TY;
+
+  // Bin splats into tiles (CSR per view), splats in index order inside each bin.
+  std::vector<std::vector<int64_t>> offsets(V, std::vector<int64_t>(T + 1, 0));
+  std::vector<std::vector<int32_t>> lists(V);
+  std::vector<std::vector<Box>> boxes(V, std::vector<Box>(N));
+  dynamic_for(V, 1, [&](int64_t v) {
+    auto& off = offsets[v];
+    auto& bx = boxes[v];
+    for (int64_t k = 0; k < N; ++k) {
+      const float* s = P + (v * N + k) * kFields;
+      if (!(s[9] > 0.f)) { bx[k].j0 = 1; bx[k].j1 = 0; continue; }
+      Box b = splat_box(s, (int)H, (int)W);
+      bx[k] = b;
+      if (b.j1 < b.j0 || b.i1 < b.i0) continue;
+      for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
+        for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) off[ty * TX + tx + 1]++;
+    }
+    for (int64_t t = 0; t < T; ++t) off[t + 1] += off[t];
+    lists[v].resize(off[T]);
+    std::vector<int64_t> fill(off.begin(), off.end() - 1);
+    for (int64_t k = 0; k < N; ++k) {
+      const Box& b = bx[k];
+      if (b.j1 < b.j0 || b.i1 < b.i0) continue;
+      for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
+        for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) lists[v][fill[ty * TX + tx]++] = (int32_t)k;
+    }
+  });
+
+  int32_t* I = idx.data_ptr<int32_t>();
+  float* D = depth.data_ptr<float>();
+  float* Rh = rho.data_ptr<float>();
+  bool* Mk = mask.data_ptr<bool>();
+  float* IMG = do_blend ? images.data_ptr<float>() : nullptr;
+  const float* A = do_blend ? attrs.data_ptr<float>() : nullptr;
+  const float* BG = do_blend ? background.data_ptr<float>() : nullptr;
+
+  dynamic_for(V * T, 1, [&](int64_t item) {
+    const int64_t v = item / T, t = item % T;
+    const int ty = (int)(t / TX), tx = (int)(t % TX);
+    const int ti0 = ty * kTile, tj0 = tx * kTile;
+    const int ti1 = std::min<int>((int)H, ti0 + kTile) - 1, tj1 = std::min<int>((int)W, tj0 + kTile) - 1;
+    // Tile-local top-K buffers (contiguous per pixel).
+    int32_t li[kTile * kTile * 8];
+    float ld[kTile * kTile * 8], lr[kTile * kTile * 8];
+    int cnt[kTile * kTile];
+    TORCH_CHECK(K <= 8, "K must be <= 8");
+    std::fill(cnt, cnt + kTile * kTile, 0);
+    const auto& off = offsets[v];
+    for (int64_t e = off[t]; e < off[t + 1]; ++e) {
+      const int32_t k = lists[v][e];
+      const float* s = P + (v * N + k) * kFields;
+      const Box& b = boxes[v][k];
+      const int i0 = std::max(b.i0, ti0), i1 = std::min(b.i1, ti1);
+      const int j0 = std::max(b.j0, tj0), j1 = std::min(b.j1, tj1);
+      const float zk = s[6];
+      for (int i = i0; i <= i1; ++i) {
+        const float dy = ((float)i + 0.5f) - s[1];
+        for (int j = j0; j <= j1; ++j) {
+          const float dx = ((float)j + 0.5f) - s[0];
+          const float q = quad(s, dx, dy);
+          if (!(0.5f * q <= cutoff)) continue;
+          const int p = (i - ti0) * kTile + (j - tj0);
+          int c = cnt[p];
+          int32_t* pi = li + p * 8;
+          float* pd = ld + p * 8;
+          float* pr = lr + p * 8;
+          // Insertion into the sorted (depth, index) list.
+          if (c == K) {
+            if (!(zk < pd[K - 1] || (zk == pd[K - 1] && k < pi[K - 1]))) continue;
+            c = (int)K - 1;
+          }
+          int pos = c;
+          while (pos > 0 && (zk < pd[pos - 1] || (zk == pd[pos - 1] && k < pi[pos - 1]))) {
+            pi[pos] = pi[pos - 1];
+            pd[pos] = pd[pos - 1];
+            pr[pos] = pr[pos - 1];
+            --pos;
+          }
+          pi[pos] = k;
+          pd[pos] = zk;
+          pr[pos] = s[5] * std::exp(-0.5f * q);
+          cnt[p] = c + 1;
+        }
+      }
+    }
+    // Write out the cache and blend the visible entries (Eq. sumI).
+    for (int i = ti0; i <= ti1; ++i) {
+      for (int j = tj0; j <= tj1; ++j) {
+        const int p = (i - ti0) * kTile + (j - tj0);
+        const int c = cnt[p];
+        const int64_t g = ((v * H + i) * W + j);
+        for (int e = 0; e < c; ++e) {
+          I[g * K + e] = li[p * 8 + e];
+          D[g * K + e] = ld[p * 8 + e];
+          Rh[g * K + e] = lr[p * 8 + e];
+        }
+        if (c == 0) {
+          if (do_blend)
+            for (int64_t ch = 0; ch < C; ++ch) IMG[g * C + ch] = BG[ch];
+          continue;
+        }
+        const float lim = ld[p * 8] + merge;
+        float den = 0.f;
+        float num[16] = {0};
+        for (int e = 0; e < c; ++e) {
+          if (!(ld[p * 8 + e] <= lim)) break;
+          const float w = lr[p * 8 + e];
+          den += w;
+          if (do_blend) {
+            const float* a = A + (v * N + li[p * 8 + e]) * C;
+            for (int64_t ch = 0; ch < C; ++ch) num[ch] += w * a[ch];
+          }
+        }
+        Mk[g] = den > 0.f;
+        if (do_blend) {
+          for (int64_t ch = 0; ch < C; ++ch) IMG[g * C + ch] = den > 0.f ? num[ch] / den : BG[ch];
+        }
+      }
+    }
+  });
+  return {idx, depth, rho, images, mask};
+}
+
+// ---------------------------------------------------------------------------------------------
+// Visibility gradient (paper Eqs. gradcase, filteredG, cases (a), (b), (c)); see
+// dss/visibility/reference.py for the rules written out in torch.
+torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
+                                  torch::Tensor rho, torch::Tensor images, torch::Tensor grad, torch::Tensor R,
+                                  torch::Tensor focal, torch::Tensor principal, torch::Tensor background,
+                                  int64_t window, int64_t stride, double cutoff_d, double merge_d, double eps_d,
+                                  int64_t mode) {
+  packed = packed.contiguous().to(torch::kFloat32);
+  attrs = attrs.contiguous().to(torch::kFloat32);
+  idx = idx.contiguous();
+  depth = depth.contiguous();
+  rho = rho.contiguous();
+  images = images.contiguous().to(torch::kFloat32);
+  grad = grad.contiguous().to(torch::kFloat32);
+  R = R.contiguous().to(torch::kFloat32);
+  focal = focal.contiguous().to(torch::kFloat32);
+  principal = principal.contiguous().to(torch::kFloat32);
+  background = background.contiguous().to(torch::kFloat32);
+  const int64_t V = packed.size(0), N = packed.size(1), H = idx.size(1), W = idx.size(2), K = idx.size(3);
+  const int64_t C = attrs.size(2);
+  TORCH_CHECK(C <= 16, "at most 16 channels");
+  TORCH_CHECK(stride >= 1, "window stride must be >= 1");
+  const float cutoff = (float)cutoff_d, merge = (float)merge_d, eps = (float)eps_d;
+  auto out = torch::zeros({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
+  float* G = out.data_ptr<float>();
+  const float* P = packed.data_ptr<float>();
+  const float* A = attrs.data_ptr<float>();
+  const int32_t* I = idx.data_ptr<int32_t>();
+  const float* D = depth.data_ptr<float>();
+  const float* Rh = rho.data_ptr<float>();
+  const float* IMG = images.data_ptr<float>();
+  const float* GR = grad.data_ptr<float>();
+  const float* Rm = R.data_ptr<float>();
+  const float* F = focal.data_ptr<float>();
+  const float* PP = principal.data_ptr<float>();
+  const float* BG = background.data_ptr<float>();
+
+  dynamic_for(N, 16, [&](int64_t k) {
+    double gw[3] = {0, 0, 0};
+    for (int64_t v = 0; v < V; ++v) {
+      const float* s = P + (v * N + k) * kFields;
+      if (!(s[9] > 0.f)) continue;
+      const float u = s[0], vv = s[1], z = s[6], nk = s[5];
+      const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1];
+      const float X = (u - cx) * z / f, Y = (vv - cy) * z / f;
+      const float* wk = A + (v * N + k) * C;
+      const int ic = (int)std::floor(vv), jc = (int)std::floor(u);
+      double acc[3] = {0, 0, 0};
+      for (int64_t dy = -window; dy <= window; dy += stride) {
+        const int64_t i = ic + dy;
+        if (i < 0 || i >= H) continue;
+        for (int64_t dx = -window; dx <= window; dx += stride) {
+          const int64_t j = jc + dx;
+          if (j < 0 || j >= W) continue;
+          const int64_t g = (v * H + i) * W + j;
+          const float* gp = GR + g * C;
+          bool nz = false;
+          for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
+          if (!nz) continue;
+          const int32_t* pi = I + g * K;
+          const float* pd = D + g * K;
+          const float* pr = Rh + g * K;
+          int nvalid = 0;
+          while (nvalid < K && pi[nvalid] >= 0) ++nvalid;
+          const float d0 = nvalid > 0 ? pd[0] : std::numeric_limits<float>::infinity();
+          bool k_visible = false;
+          for (int e = 0; e < nvalid; ++e)
+            if (pi[e] == (int32_t)k && pd[e] <= d0 + merge) k_visible = true;
+          float num[16], den = 0.f;
+          for (int64_t ch = 0; ch < C; ++ch) num[ch] = 0.f;
+          int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
+          if (k_visible) {
+            kase = 2;
+            float front = std::numeric_limits<float>::infinity();
+            for (int e = 0; e < nvalid; ++e)
+              if (pi[e] != (int32_t)k) { front = pd[e]; break; }
+            for (int e = 0; e < nvalid; ++e) {
+              if (pi[e] == (int32_t)k || !(pd[e] <= front + merge)) continue;
+              den += pr[e];
+              const float* a = A + (v * N + pi[e]) * C;
+              for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+            }
+          } else {
+            kase = (nvalid == 0 || z <= d0 + merge) ? 0 : 1;
+            const float zf = kase == 0 ? std::min(z, d0) : d0;
+            den = nk;
+            for (int64_t ch = 0; ch < C; ++ch) num[ch] = nk * wk[ch];
+            for (int e = 0; e < nvalid; ++e) {
+              if (pi[e] == (int32_t)k || !(pd[e] <= zf + merge)) continue;
+              den += pr[e];
+              const float* a = A + (v * N + pi[e]) * C;
+              for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+            }
+          }
+          const float* ip = IMG + g * C;
+          float gd = 0.f;
+          for (int64_t ch = 0; ch < C; ++ch) {
+            const float inew = den > 0.f ? num[ch] / den : BG[ch];
+            gd += gp[ch] * (inew - ip[ch]);
+          }
+          const float px = (float)j + 0.5f, py = (float)i + 0.5f;
+          if (mode == 0) {  // dss: linearised step between the two visibility states
+            if (!(gd < 0.f)) continue;  // Eq. filteredG
+            if (kase == 2) {
+              const float ddx = px - u, ddy = py - vv;
+              const float sd = std::sqrt(ddx * ddx + ddy * ddy);
+              if (sd < 1e-6f) continue;
+              const float ux = ddx / sd, uy = ddy / sd;
+              const float qu = quad(s, ux, uy);
+              const float r = std::sqrt(2.f * cutoff / std::max(qu, 1e-20f));
+              const float steps[2] = {-(std::max(r - sd, 0.f)), r + sd};
+              for (int m = 0; m < 2; ++m) {
+                const float mx = steps[m] * ux * z / f, my = steps[m] * uy * z / f;
+                const float coef = gd / (mx * mx + my * my + eps);
+                acc[0] += coef * mx;
+                acc[1] += coef * my;
+              }
+            } else {
+              const float zt = kase == 1 ? d0 : z;
+              const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - z;
+              const float coef = gd / (mx * mx + my * my + mz * mz + eps);
+              acc[0] += coef * mx;
+              acc[1] += coef * my;
+              acc[2] += coef * mz;
+            }
+          } else {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
+            const float ddx = px - u, ddy = py - vv;
+            const float q = quad(s, ddx, ddy);
+            const float h = std::exp(-0.5f * q);
+            const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
+            const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);  // dh/du_k = h Sigma^-1 d
+            const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
+            const float c = sgn * gd;
+            acc[0] += c * (f / z) * gu;
+            acc[1] += c * (f / z) * gv;
+            acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
+          }
+        }
+      }
+      const float* Rv = Rm + v * 9;  // world gradient = R^T acc
+      for (int a = 0; a < 3; ++a) gw[a] += Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
+    }
+    for (int a = 0; a < 3; ++a) G[k * 3 + a] = (float)gw[a];
+  });
+  return out;
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
+  m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
+}

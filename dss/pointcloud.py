@@ -1,0 +1,264 @@
+"""Point clouds: PLY input/output, PCA normals, and the small geometric helpers every app needs.
+
+Points and normals are float32 tensors of shape (N, 3); colours are float32 in [0, 1], (N, 3).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .io_utils import atomic_path
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "PointCloud",
+    "PointCloudError",
+    "load_ply",
+    "save_ply",
+    "estimate_normals",
+    "orient_normals_outward",
+    "bbox_diagonal",
+    "normalize_unit_diagonal",
+    "add_gaussian_noise",
+    "finite_rows",
+]
+
+
+class PointCloudError(ValueError):
+    """Bad point-cloud input; the message names the file (when there is one) and the problem."""
+
+
+@dataclass
+class PointCloud:
+    """A point cloud. ``points``/``normals``/``colors`` are (N, 3) float32 tensors (or None)."""
+
+    points: torch.Tensor
+    normals: torch.Tensor | None = None
+    colors: torch.Tensor | None = None
+
+    def __post_init__(self):
+        self.points = _as_tensor(self.points)
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise PointCloudError(f"points must have shape (N, 3), got {tuple(self.points.shape)}")
+        for name in ("normals", "colors"):
+            v = getattr(self, name)
+            if v is not None:
+                v = _as_tensor(v).to(self.points.device)
+                if v.shape != self.points.shape:
+                    raise PointCloudError(
+                        f"{name} must have the shape of points {tuple(self.points.shape)}, got {tuple(v.shape)}"
+                    )
+                setattr(self, name, v)
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+    def to(self, device) -> PointCloud:
+        return PointCloud(
+            self.points.to(device),
+            None if self.normals is None else self.normals.to(device),
+            None if self.colors is None else self.colors.to(device),
+        )
+
+    def select(self, keep: torch.Tensor) -> PointCloud:
+        """Rows ``keep`` (bool mask or indices) of every attribute."""
+        return PointCloud(
+            self.points[keep],
+            None if self.normals is None else self.normals[keep],
+            None if self.colors is None else self.colors[keep],
+        )
+
+    def with_normals(self, normals: torch.Tensor) -> PointCloud:
+        return replace(self, normals=normals)
+
+
+def _as_tensor(x) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x.float() if x.dtype != torch.float32 else x
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+
+def finite_rows(*arrays: torch.Tensor | None) -> torch.Tensor:
+    """Bool mask (N,) of rows that are finite in every given (N, d) array."""
+    mask = None
+    for a in arrays:
+        if a is None:
+            continue
+        m = torch.isfinite(a).all(dim=1)
+        mask = m if mask is None else mask & m
+    return mask
+
+
+def load_ply(
+    path: str | os.PathLike,
+    nan_policy: str = "drop",
+    compute_normals: bool = True,
+    normals_k: int = 16,
+) -> PointCloud:
+    """Load a point cloud (PLY, or any format open3d reads; a mesh file gives its vertices).
+
+    Args:
+        path: the file.
+        nan_policy: rows with NaN/inf in points or normals are reported (logged with their count)
+            and then ``"drop"``-ped, or the load is refused with ``"raise"``.
+        compute_normals: when the file has no normals, estimate them by PCA over ``normals_k``
+            neighbours and orient them consistently (see :func:`estimate_normals`).
+
+    Raises:
+        PointCloudError: missing file, unreadable/malformed file, empty cloud, NaN rows with
+            ``nan_policy="raise"``, or no finite row left.
+    """
+    import open3d as o3d
+
+    if nan_policy not in ("drop", "raise"):
+        raise ValueError(f"nan_policy must be 'drop' or 'raise', got {nan_policy!r}")
+    path = Path(path)
+    if not path.exists():
+        raise PointCloudError(f"{path}: no such file")
+    if path.is_dir():
+        raise PointCloudError(f"{path}: is a directory, expected a point cloud file")
+    if path.stat().st_size == 0:
+        raise PointCloudError(f"{path}: the file is empty")
+    pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    if len(pcd.points) == 0:
+        with open(path, "rb") as f:
+            head = f.read(64)
+        if path.suffix.lower() == ".ply" and not head.startswith(b"ply"):
+            raise PointCloudError(f"{path}: not a PLY file (header does not start with 'ply')")
+        raise PointCloudError(f"{path}: holds no points (empty cloud, or a malformed file open3d could not parse)")
+    points = torch.from_numpy(np.asarray(pcd.points, dtype=np.float32).copy())
+    normals = torch.from_numpy(np.asarray(pcd.normals, dtype=np.float32).copy()) if pcd.has_normals() else None
+    colors = torch.from_numpy(np.asarray(pcd.colors, dtype=np.float32).copy()) if pcd.has_colors() else None
+
+    ok = finite_rows(points, normals, colors)
+    n_bad = int((~ok).sum())
+    if n_bad:
+        rows = torch.nonzero(~ok).flatten()[:5].tolist()
+        msg = f"{path}: {n_bad} of {len(ok)} rows hold NaN/inf values (first rows: {rows})"
+        if nan_policy == "raise":
+            raise PointCloudError(msg + "; refusing (nan_policy='raise')")
+        log.warning("%s; dropping them", msg)
+        points, normals, colors = points[ok], None if normals is None else normals[ok], None if colors is None else colors[ok]
+        if len(points) == 0:
+            raise PointCloudError(f"{path}: no finite point left after dropping NaN/inf rows")
+    if normals is not None:
+        length = normals.norm(dim=1)
+        if (length < 1e-8).all():
+            log.warning("%s: all normals are zero; recomputing them", path)
+            normals = None
+        else:
+            normals = normals / length.clamp_min(1e-12)[:, None]
+    if normals is None and compute_normals:
+        if len(points) < 3:
+            raise PointCloudError(f"{path}: {len(points)} points are too few to estimate normals")
+        log.info("%s: no normals in the file, estimating them by PCA (k=%d)", path, normals_k)
+        normals = estimate_normals(points, k=normals_k)
+    return PointCloud(points, normals, colors)
+
+
+def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False) -> Path:
+    """Write ``cloud`` (points, normals and colours when present) atomically as PLY."""
+    import open3d as o3d
+
+    if len(cloud) == 0:
+        raise PointCloudError(f"{path}: refusing to write an empty point cloud")
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(cloud.points.detach().cpu().double().numpy())
+    if cloud.normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(cloud.normals.detach().cpu().double().numpy())
+    if cloud.colors is not None:
+        pcd.colors = o3d.utility.Vector3dVector(cloud.colors.detach().cpu().double().clamp(0, 1).numpy())
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=ascii):
+            raise OSError(f"{path}: open3d could not write the file")
+    return path
+
+
+def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.Tensor:
+    """PCA normals (Hoppe et al. 1992) over the ``k`` nearest neighbours, consistently oriented.
+
+    Args:
+        points: (N, 3) tensor or array.
+        k: neighbourhood size.
+        orient: ``"consistent"`` propagates orientation over a Riemannian graph (open3d's
+            tangent-plane propagation) and then flips all normals so most point away from the
+            centroid; ``"outward"`` only does the centroid flip per point (fast, fine for star-shaped
+            objects); ``"none"`` leaves the PCA sign.
+
+    Returns:
+        (N, 3) float32 unit normals on the device of ``points`` when it is a tensor.
+    """
+    import open3d as o3d
+
+    device = points.device if isinstance(points, torch.Tensor) else torch.device("cpu")
+    p = points.detach().cpu().double().numpy() if isinstance(points, torch.Tensor) else np.asarray(points, np.float64)
+    if len(p) < 3:
+        raise PointCloudError(f"cannot estimate normals of {len(p)} points (need at least 3)")
+    k = int(min(k, len(p)))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
+    if orient == "consistent" and len(p) > k + 1:
+        try:
+            pcd.orient_normals_consistent_tangent_plane(k)
+        except RuntimeError as e:  # disconnected graphs on very sparse input
+            log.warning("consistent normal orientation failed (%s); orienting outward per point", e)
+    n = torch.from_numpy(np.asarray(pcd.normals, dtype=np.float32).copy())
+    pts = torch.from_numpy(p.astype(np.float32))
+    if orient == "consistent":
+        # Propagation fixes relative signs only; choose the global sign that points outward.
+        out = ((pts - pts.mean(0)) * n).sum(1)
+        if (out < 0).sum() > (out > 0).sum():
+            n = -n
+    elif orient == "outward":
+        n = orient_normals_outward(pts, n)
+    return n.to(device)
+
+
+def orient_normals_outward(points: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """Flip each normal to point away from the centroid (exact for star-shaped objects)."""
+    s = ((points - points.mean(0)) * normals).sum(1, keepdim=True)
+    return torch.where(s < 0, -normals, normals)
+
+
+def bbox_diagonal(points) -> float:
+    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
+    p = _as_tensor(points)
+    if p.numel() == 0:
+        raise PointCloudError("bounding box of an empty point set")
+    return float((p.max(0).values - p.min(0).values).norm())
+
+
+def normalize_unit_diagonal(points) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Centre the bounding box at the origin and scale its diagonal to 1.
+
+    Returns:
+        (normalised points, centre (3,), scale) with ``normalised = (points - centre) / scale``.
+    """
+    p = _as_tensor(points)
+    center = (p.max(0).values + p.min(0).values) / 2
+    scale = bbox_diagonal(p)
+    if scale <= 0:
+        raise PointCloudError("all points coincide: cannot normalise a zero-size bounding box")
+    return (p - center) / scale, center, scale
+
+
+def add_gaussian_noise(points, std_fraction: float, generator: torch.Generator | None = None, seed: int | None = None) -> torch.Tensor:
+    """White Gaussian noise with std = ``std_fraction`` x the bounding-box diagonal (paper convention).
+
+    ``generator`` (a CPU ``torch.Generator``) or ``seed`` makes it reproducible.
+    """
+    if std_fraction < 0:
+        raise ValueError(f"noise std fraction must be >= 0, got {std_fraction}")
+    p = _as_tensor(points)
+    if generator is None and seed is not None:
+        generator = torch.Generator().manual_seed(int(seed))
+    noise = torch.randn(p.shape, generator=generator, dtype=torch.float32)
+    return p + noise.to(p.device) * (std_fraction * bbox_diagonal(p))

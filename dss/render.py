@@ -1,0 +1,251 @@
+"""``render``: the one functional entry point of the DSS renderer.
+
+Stages (each usable on its own):
+1. :func:`dss.splats.project_splats` — points + normals -> screen-space EWA splats (torch).
+2. a rasteriser backend — splats -> per-pixel top-K cache (:class:`Fragments`), and the image
+   when no gradient is needed (``reference``: pure torch; ``cpp``: C++/OpenMP kernel).
+3. :func:`dss.shading.shade` — per-view point attributes w_k (torch).
+4. blending (Eq. sumI). With gradients enabled, the weights of the visible cached fragments are
+   recomputed with differentiable torch ops, so autograd supplies the smooth terms of Eqs. gradN
+   and gradP (through w_k and rho_bar); a custom autograd function adds the visibility term of
+   Eq. gradP for positions (:mod:`dss.visibility`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import torch
+
+from . import _ext
+from .cameras import Cameras
+from .pointcloud import bbox_diagonal
+from .rasterizer import reference as ref_raster
+from .rasterizer.fragments import Fragments
+from .shading import shade
+from .splats import Splats, auto_sigma, project_splats
+from .visibility import visibility_grad_reference
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RenderSettings", "RenderOutput", "render", "resolve_backend", "rasterize", "BACKENDS"]
+
+BACKENDS = ("auto", "cpp", "reference")
+
+
+@dataclass
+class RenderSettings:
+    """Renderer settings (paper section "Forward pass" and Appendix "Parameter discussion").
+
+    Attributes:
+        K: cached splats per pixel (paper: 5; at most 8).
+        cutoff: C; a splat covers pixels with 1/2 d^T Sigma^-1 d <= C (radius ~ sqrt(2C) std).
+        merge_threshold: T in world units; None -> ``merge_fraction`` x bounding-box diagonal.
+        merge_fraction: T relative to the bbox diagonal of the rendered points (paper: 1%).
+        sigma: object-space splat std: a number (world units) or "auto" (per point, ``sigma_scale``
+            x mean distance to the ``sigma_k`` nearest neighbours).
+        backface_culling: drop splats facing away from the camera (paper: on).
+        znear: near plane (camera units).
+        background: value of empty pixels (scalar or per channel).
+        gradient: "dss" (the paper's visibility gradient), "rbf" (smooth Gaussian derivative, for
+            comparisons only) or "none" (smooth terms only).
+        window: half size (pixels) of the screen window around each point whose pixels feed the
+            visibility gradient; ``window_stride`` > 1 samples it sparsely (long range, cheaper).
+        epsilon: the paper's epsilon in Eq. gradcase (world units squared).
+    """
+
+    K: int = 5
+    cutoff: float = 2.0
+    merge_threshold: float | None = None
+    merge_fraction: float = 0.01
+    sigma: float | str = "auto"
+    sigma_k: int = 8
+    sigma_scale: float = 0.5
+    backface_culling: bool = True
+    znear: float = 1e-3
+    background: float | tuple = 0.0
+    gradient: str = "dss"
+    window: int = 4
+    window_stride: int = 1
+    epsilon: float = 1e-5
+
+    def __post_init__(self):
+        if not 1 <= self.K <= 8:
+            raise ValueError(f"K must be in [1, 8], got {self.K}")
+        if self.cutoff <= 0:
+            raise ValueError(f"cutoff must be > 0, got {self.cutoff}")
+        if self.gradient not in ("dss", "rbf", "none"):
+            raise ValueError(f"gradient must be 'dss', 'rbf' or 'none', got {self.gradient!r}")
+        if self.window < 0 or self.window_stride < 1:
+            raise ValueError("window must be >= 0 and window_stride >= 1")
+        if isinstance(self.sigma, str) and self.sigma != "auto":
+            raise ValueError(f"sigma must be a number or 'auto', got {self.sigma!r}")
+
+
+@dataclass
+class RenderOutput:
+    """Result of :func:`render`.
+
+    Attributes:
+        images: (V, H, W, C) float32.
+        mask: (V, H, W) bool, pixels where a splat is visible.
+        fragments: the per-pixel top-K cache (index, weight, depth).
+        splats: the screen-space splats (packed (V, N, 10)).
+        attributes: (V, N, C) per-view point attributes that were blended.
+        sigma: (N,) or scalar splat std used.
+    """
+
+    images: torch.Tensor
+    mask: torch.Tensor
+    fragments: Fragments
+    splats: Splats
+    attributes: torch.Tensor
+    sigma: torch.Tensor
+    extras: dict = field(default_factory=dict)
+
+
+def resolve_backend(backend: str, device: torch.device | None = None) -> str:
+    """Pick a concrete backend: "auto" -> the fastest available for ``device``."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    if device is not None and device.type != "cpu":
+        if backend == "cpp":
+            raise ValueError("backend 'cpp' runs on CPU tensors only")
+        return "reference"
+    if backend == "auto":
+        return "cpp" if _ext.cpu_available() else "reference"
+    if backend == "cpp" and not _ext.cpu_available():
+        raise RuntimeError(f"the C++ backend is not available: {_ext.build_error()}")
+    return backend
+
+
+def rasterize(splats: Splats, image_size, K: int, cutoff: float, merge_threshold: float, backend: str,
+              attributes: torch.Tensor | None = None, background: torch.Tensor | None = None):
+    """Stage 2: top-K cache, plus the blended image/mask when ``attributes`` is given."""
+    packed = splats.packed.detach()
+    H, W = image_size
+    if backend == "cpp":
+        mod = _ext.load_cpu()
+        attrs = attributes.detach().float() if attributes is not None else torch.empty(0)
+        bg = background if background is not None else torch.zeros(attrs.shape[-1] if attrs.numel() else 0)
+        idx, depth, rho, images, mask = mod.rasterize_forward(packed.float(), attrs, H, W, K, float(cutoff), float(merge_threshold), bg.float())
+        frags = Fragments(idx, depth, rho, float(merge_threshold))
+        return frags, (images if attributes is not None else None), mask
+    frags = ref_raster.rasterize(splats, image_size, K, cutoff, merge_threshold)
+    if attributes is None:
+        return frags, None, frags.visible.any(-1) & (torch.where(frags.visible, frags.rho, 0).sum(-1) > 0)
+    images, mask = ref_raster.blend(frags, attributes.detach(), background)
+    return frags, images, mask
+
+
+def _blend_differentiable(frags: Fragments, splats: Splats, attributes: torch.Tensor, background: torch.Tensor):
+    """Eq. sumI over the visible cached fragments with rho_bar recomputed in torch (autograd)."""
+    V, H, W, K = frags.idx.shape
+    C = attributes.shape[-1]
+    vis = frags.visible
+    v_i, i_i, j_i, _ = torch.nonzero(vis, as_tuple=True)
+    pts = frags.idx[vis].long()
+    pk = splats.packed[v_i, pts]
+    _, rho = ref_raster.splat_weight(pk, j_i.float() + 0.5, i_i.float() + 0.5)
+    a = attributes[v_i, pts]
+    flat = (v_i * H + i_i) * W + j_i
+    num = torch.zeros(V * H * W, C, dtype=attributes.dtype, device=attributes.device).index_add(0, flat, rho[:, None] * a)
+    den = torch.zeros(V * H * W, dtype=rho.dtype, device=rho.device).index_add(0, flat, rho)
+    mask = den > 0
+    img = torch.where(mask[:, None], num / torch.where(mask, den, torch.ones_like(den))[:, None], background.expand(C))
+    return img.view(V, H, W, C), mask.view(V, H, W)
+
+
+class _VisibilityGradient(torch.autograd.Function):
+    """Identity on the images; in backward adds the visibility term of Eq. gradP to the points."""
+
+    @staticmethod
+    def forward(ctx, images, points, packed, attrs, frags_t, cam_t, background, opts):
+        ctx.save_for_backward(packed, attrs, *frags_t, *cam_t, background, images.detach())
+        ctx.opts = opts
+        return images.view_as(images)
+
+    @staticmethod
+    def backward(ctx, grad):
+        packed, attrs, idx, depth, rho, R, t, focal, principal, background, images = ctx.saved_tensors
+        o = ctx.opts
+        grad_points = None
+        if ctx.needs_input_grad[1]:
+            grad = grad.contiguous()
+            if o["backend"] == "cpp":
+                grad_points = _ext.load_cpu().visibility_backward(
+                    packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
+                    o["window"], o["stride"], o["cutoff"], o["merge"], o["eps"], 0 if o["mode"] == "dss" else 1)
+            else:
+                frags = Fragments(idx, depth, rho, o["merge"])
+                cams = Cameras(R, t, focal, principal, o["image_size"])
+                grad_points = visibility_grad_reference(packed, attrs, frags, images, grad, cams, background,
+                                                        o["window"], o["stride"], o["cutoff"], o["eps"], o["mode"])
+            grad_points = grad_points.to(grad.dtype)
+        return grad, grad_points, None, None, None, None, None, None
+
+
+def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras):
+    if not isinstance(points, torch.Tensor) or points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be a (N, 3) tensor, got {getattr(points, 'shape', type(points))}")
+    if points.shape[0] == 0:
+        raise ValueError("cannot render an empty point cloud")
+    if normals is None or normals.shape != points.shape:
+        raise ValueError(f"normals must be (N, 3) like points; got {None if normals is None else tuple(normals.shape)}")
+    if not torch.isfinite(points).all() or not torch.isfinite(normals).all():
+        raise ValueError("points/normals contain NaN or inf; drop those rows first (dss.pointcloud.finite_rows)")
+    if not isinstance(cameras, Cameras):
+        raise TypeError("cameras must be a dss.cameras.Cameras")
+
+
+def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settings: RenderSettings | None = None,
+           shading="sun", colors: torch.Tensor | None = None, backend: str = "auto",
+           sigma: torch.Tensor | float | None = None) -> RenderOutput:
+    """Render N oriented points from V cameras with differentiable EWA surface splatting.
+
+    Args:
+        points: (N, 3) world positions (float32; may require grad).
+        normals: (N, 3) normals (may require grad; need not be unit length).
+        cameras: V :class:`Cameras`; all images are ``cameras.image_size`` = (H, W).
+        settings: :class:`RenderSettings` (defaults follow the paper).
+        shading: "sun" (default), "albedo", "normals", "depth", "mask", or a callable such as
+            :class:`dss.shading.PointLight` (see :func:`dss.shading.shade`).
+        colors: (N, 3) per-point albedo (may require grad).
+        backend: "auto", "cpp" or "reference".
+        sigma: overrides ``settings.sigma`` with a scalar or an (N,) tensor.
+
+    Returns:
+        :class:`RenderOutput` with images (V, H, W, C) and mask (V, H, W).
+    """
+    settings = settings or RenderSettings()
+    _check_inputs(points, normals, cameras)
+    backend = resolve_backend(backend, points.device)
+    if sigma is None:
+        sigma = auto_sigma(points.detach(), settings.sigma_k, settings.sigma_scale) if settings.sigma == "auto" else float(settings.sigma)
+    sigma_t = torch.as_tensor(sigma, dtype=points.dtype, device=points.device)
+    merge = settings.merge_threshold
+    if merge is None:
+        merge = settings.merge_fraction * max(bbox_diagonal(points.detach()), 1e-12)
+    splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling, settings.znear)
+    attrs = shade(shading, points, normals, cameras, colors)
+    C = attrs.shape[-1]
+    bg = torch.as_tensor(settings.background, dtype=torch.float32, device=points.device).flatten()
+    if bg.numel() not in (1, C):
+        raise ValueError(f"background has {bg.numel()} values, the shading has {C} channels")
+    bg = bg.expand(C).contiguous()
+
+    needs_grad = torch.is_grad_enabled() and (splats.packed.requires_grad or attrs.requires_grad)
+    frags, images, mask = rasterize(splats, cameras.image_size, settings.K, settings.cutoff, merge, backend,
+                                    attributes=None if needs_grad else attrs, background=bg)
+    if needs_grad:
+        images, mask = _blend_differentiable(frags, splats, attrs, bg)
+        if settings.gradient != "none" and points.requires_grad:
+            opts = dict(backend=backend, window=int(settings.window), stride=int(settings.window_stride),
+                        cutoff=float(settings.cutoff), merge=float(merge), eps=float(settings.epsilon),
+                        mode=settings.gradient, image_size=cameras.image_size)
+            images = _VisibilityGradient.apply(
+                images, points, splats.packed.detach().contiguous(), attrs.detach().contiguous(),
+                (frags.idx, frags.depth, frags.rho), (cameras.R, cameras.t, cameras.focal, cameras.principal),
+                bg, opts)
+    return RenderOutput(images, mask, frags, splats, attrs, sigma_t)

@@ -1,0 +1,122 @@
+"""Per-point, per-view attributes ``w_k`` that the splats carry (the paper's Phi).
+
+Every shader maps points (N,3), unit normals (N,3) and cameras to a (V, N, C) tensor; the
+renderer blends these with the splat weights (Eq. sumI). All are differentiable in torch.
+
+- :class:`SunLights`: diffuse shading under three orthogonal RGB sun lights fixed to the camera
+  (the paper's default: the colour encodes the normal and does not depend on position).
+- :class:`PointLight`: diffuse shading under a point light placed in camera space (the paper's
+  training data for the denoiser); depends on position too.
+- ``albedo``, ``normals`` (world-space unit normals, in [-1, 1]), ``depth`` (inverse camera
+  depth 1/z), ``mask`` (ones: the blended image is coverage).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from .cameras import Cameras
+
+__all__ = ["SunLights", "PointLight", "shade", "SHADING_CHANNELS"]
+
+SHADING_CHANNELS = {"sun": 3, "point": 3, "albedo": 3, "normals": 3, "depth": 1, "mask": 1}
+
+
+def _three_orthogonal_dirs() -> torch.Tensor:
+    """Rows: three orthonormal directions (camera space) towards the lights.
+
+    They are the rotated coordinate axes whose common diagonal (1,1,1)/sqrt(3) points at the
+    viewer (-z in camera space), so every light shines on the visible hemisphere partly.
+    """
+    a = torch.tensor([1.0, 1.0, 1.0]) / math.sqrt(3.0)
+    b = torch.tensor([0.0, 0.0, -1.0])
+    v = torch.cross(a, b, dim=0)
+    s, c = v.norm(), torch.dot(a, b)
+    vx = torch.tensor([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    rot = torch.eye(3) + vx + vx @ vx * ((1 - c) / (s * s))
+    return (rot @ torch.eye(3)).T.contiguous()
+
+
+@dataclass
+class SunLights:
+    """Three orthogonal directional lights, red/green/blue, fixed relative to the camera.
+
+    Attributes:
+        directions: (3, 3) rows are camera-space unit vectors pointing *towards* each light.
+        colors: (3, 3) rows are the RGB colour of each light.
+        ambient: added to every channel (times albedo).
+    """
+
+    directions: torch.Tensor = field(default_factory=_three_orthogonal_dirs)
+    colors: torch.Tensor = field(default_factory=lambda: torch.eye(3))
+    ambient: float = 0.0
+
+    def __call__(self, points, normals, cameras: Cameras, albedo=None) -> torch.Tensor:
+        n_cam = torch.einsum("vij,nj->vni", cameras.R, normals)  # (V,N,3)
+        d = self.directions.to(normals)
+        lam = torch.einsum("vnj,lj->vnl", n_cam, d).clamp_min(0)  # (V,N,L) diffuse terms
+        rgb = lam @ self.colors.to(normals) + self.ambient
+        if albedo is not None:
+            rgb = rgb * albedo[None]
+        return rgb
+
+
+@dataclass
+class PointLight:
+    """Diffuse shading under a point light at ``position`` in camera space.
+
+    ``intensity * max(0, n . l) + ambient`` times the albedo (white by default), with ``l`` the
+    unit vector from the point to the light. No distance falloff: the denoiser's training renders
+    must not depend on the object's distance to the camera.
+    """
+
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    intensity: float = 1.0
+    ambient: float = 0.1
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def __call__(self, points, normals, cameras: Cameras, albedo=None) -> torch.Tensor:
+        pc = cameras.world_to_camera(points)  # (V,N,3)
+        n_cam = torch.einsum("vij,nj->vni", cameras.R, normals)
+        light = torch.as_tensor(self.position, dtype=points.dtype, device=points.device)
+        l_dir = light - pc
+        l_dir = l_dir / l_dir.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        lam = (n_cam * l_dir).sum(-1, keepdim=True).clamp_min(0)
+        col = torch.as_tensor(self.color, dtype=points.dtype, device=points.device)
+        rgb = (self.intensity * lam + self.ambient) * col
+        if albedo is not None:
+            rgb = rgb * albedo[None]
+        return rgb
+
+
+def shade(shading, points: torch.Tensor, normals: torch.Tensor, cameras: Cameras,
+          colors: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-view point attributes (V, N, C) for ``shading``.
+
+    Args:
+        shading: ``"sun"``, ``"albedo"``, ``"normals"``, ``"depth"``, ``"mask"``, or a callable
+            ``(points, normals, cameras, albedo) -> (V, N, C)`` such as :class:`PointLight`.
+        colors: optional (N, 3) per-point albedo in [0, 1].
+    """
+    V, N = len(cameras), points.shape[0]
+    if callable(shading):
+        return shading(points, normals, cameras, colors)
+    if shading == "sun":
+        return SunLights()(points, normals, cameras, colors)
+    if shading == "point":
+        return PointLight()(points, normals, cameras, colors)
+    if shading == "albedo":
+        if colors is None:
+            raise ValueError("shading='albedo' needs per-point colors")
+        return colors[None].expand(V, N, colors.shape[1])
+    if shading == "normals":
+        return normals[None].expand(V, N, 3)
+    if shading == "depth":
+        _, z = cameras.project(points)
+        return (1.0 / z.clamp_min(1e-6))[..., None]
+    if shading == "mask":
+        return points.new_ones(V, N, 1)
+    raise ValueError(f"unknown shading {shading!r}; use one of {sorted(SHADING_CHANNELS)} or a callable")

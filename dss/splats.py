@@ -1,0 +1,136 @@
+"""Stage 1 of rendering: project oriented points to screen-space EWA splats (paper Eqs. rk, filter).
+
+For a point ``p_k`` with normal ``n_k`` and a camera, the Jacobian ``J_k`` of the projection
+restricted to the tangent plane maps the isotropic object-space Gaussian ``V_k = sigma_k^2 I`` to
+the screen-space covariance ``J_k V_k J_k^T``; the low-pass filter adds ``I`` (one pixel^2):
+
+    Sigma_k = sigma_k^2 J_k J_k^T + I,
+    rho_bar_k(x) = |det J_k| / (2 pi sqrt(det Sigma_k)) * exp(-1/2 (x - x_k)^T Sigma_k^-1 (x - x_k)).
+
+We never build a tangent basis: with ``M`` the (2, 3) derivative of the pinhole projection in
+camera space and ``P = I - n n^T`` the projector onto the tangent plane, ``J J^T = M P M^T`` and
+``|det J| = sqrt(det(J J^T))`` for any orthonormal tangent basis. This is smooth in ``n`` (the
+normal gradients of Eq. gradN flow through it) and stays finite for edge-on splats, whose weight
+simply goes to zero.
+
+Everything here is plain differentiable torch; the rasterisers consume the packed result.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .cameras import Cameras
+
+__all__ = ["Splats", "project_splats", "auto_sigma", "SPLAT_FIELDS"]
+
+# Column layout of the packed (V, N, F) splat tensor shared by every rasteriser backend.
+SPLAT_FIELDS = ("u", "v", "conic_a", "conic_b2", "conic_c", "norm", "depth", "rx", "ry", "valid")
+
+
+@dataclass
+class Splats:
+    """Screen-space splats of N points in V views; every field is (V, N) (``packed``: (V, N, 10)).
+
+    ``u, v``: centre in pixels; ``conic_*``: Sigma^-1 = [[a, b], [b, c]] stored as (a, 2b, c) so that
+    ``q = a dx^2 + 2b dx dy + c dy^2``; ``norm``: |det J| / (2 pi sqrt(det Sigma)), the peak weight;
+    ``depth``: camera-space z; ``rx, ry``: half extents (pixels) of the cutoff ellipse's bounding box;
+    ``valid``: 1 for splats that are rendered (in front of the near plane, front-facing when
+    culling), else 0.
+    """
+
+    packed: torch.Tensor
+
+    def field(self, name: str) -> torch.Tensor:
+        return self.packed[..., SPLAT_FIELDS.index(name)]
+
+    @property
+    def valid(self) -> torch.Tensor:
+        return self.packed[..., 9] > 0
+
+    def detach(self) -> Splats:
+        return Splats(self.packed.detach())
+
+
+def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, sigma: torch.Tensor | float,
+                   cutoff: float = 2.0, backface_culling: bool = True, znear: float = 1e-3) -> Splats:
+    """Screen-space EWA splats.
+
+    Args:
+        points: (N, 3) world positions.
+        normals: (N, 3) normals (need not be unit length; zero normals give zero weight).
+        cameras: V cameras.
+        sigma: object-space standard deviation sigma_k, a scalar or (N,) (world units).
+        cutoff: C; the splat covers pixels with 1/2 d^T Sigma^-1 d <= C.
+        backface_culling: drop splats whose normal points away from the camera.
+        znear: drop splats closer than this depth (camera units).
+
+    Returns:
+        :class:`Splats` with a packed (V, N, 10) tensor, differentiable in points and normals.
+    """
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"points and normals must both be (N, 3); got {tuple(points.shape)} and {tuple(normals.shape)}")
+    pc = cameras.world_to_camera(points)  # (V,N,3)
+    X, Y, Z = pc.unbind(-1)
+    Zs = torch.where(Z > znear, Z, torch.full_like(Z, 1.0))  # keep culled splats finite
+    f = cameras.focal[:, None]
+    cx = cameras.principal[:, None, 0]
+    cy = cameras.principal[:, None, 1]
+    u = f * X / Zs + cx
+    v = f * Y / Zs + cy
+
+    n_cam = torch.einsum("vij,nj->vni", cameras.R, normals)
+    n_len2 = (n_cam * n_cam).sum(-1, keepdim=True)
+    n_hat = n_cam / torch.sqrt(n_len2 + 1e-20)
+    # Rows of M (projection derivative, camera space): m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2).
+    zero = torch.zeros_like(Zs)
+    m1 = torch.stack([f / Zs, zero, -f * X / Zs**2], -1)
+    m2 = torch.stack([zero, f / Zs, -f * Y / Zs**2], -1)
+    # M P M^T with P = I - n n^T: entries m_i.m_j - (m_i.n)(m_j.n)
+    m1n = (m1 * n_hat).sum(-1)
+    m2n = (m2 * n_hat).sum(-1)
+    A11 = (m1 * m1).sum(-1) - m1n * m1n
+    A12 = (m1 * m2).sum(-1) - m1n * m2n
+    A22 = (m2 * m2).sum(-1) - m2n * m2n
+    det_A = (A11 * A22 - A12 * A12).clamp_min(0)
+    det_J = torch.sqrt(det_A + 1e-30) * (n_len2[..., 0] > 1e-20)
+
+    s2 = torch.as_tensor(sigma, dtype=points.dtype, device=points.device)
+    s2 = (s2 * s2).expand(points.shape[0])[None]
+    S11 = s2 * A11 + 1.0
+    S12 = s2 * A12
+    S22 = s2 * A22 + 1.0
+    det_S = S11 * S22 - S12 * S12  # >= 1 since A is PSD
+    conic_a = S22 / det_S
+    conic_b2 = -2.0 * S12 / det_S
+    conic_c = S11 / det_S
+    norm = det_J / (2 * math.pi * torch.sqrt(det_S))
+    rx = torch.sqrt(2.0 * cutoff * S11)
+    ry = torch.sqrt(2.0 * cutoff * S22)
+
+    valid = Z > znear
+    if backface_culling:
+        valid = valid & ((n_cam * pc).sum(-1) < 0)
+    packed = torch.stack([u, v, conic_a, conic_b2, conic_c, norm, Z, rx, ry, valid.to(points.dtype)], -1)
+    return Splats(packed)
+
+
+def auto_sigma(points: torch.Tensor, k: int = 8, scale: float = 0.5) -> torch.Tensor:
+    """Per-point object-space splat std from the local point spacing.
+
+    ``sigma_k = scale * mean distance of p_k to its k nearest neighbours`` (N,). With the default
+    cutoff C = 2 the splat radius is about 2 sigma, so neighbouring splats overlap and a uniformly
+    sampled surface renders without holes.
+    """
+    from .knn import knn
+
+    N = points.shape[0]
+    if N < 2:
+        return points.new_full((N,), 1e-2)
+    nb = knn(points.detach(), min(k, N - 1), exclude_self=True)
+    dist = torch.where(nb.idx >= 0, nb.dist, torch.zeros_like(nb.dist))
+    mean = dist.sum(1) / (nb.idx >= 0).sum(1).clamp_min(1)
+    return (mean * scale).clamp_min(1e-8).to(points.dtype)
