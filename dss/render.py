@@ -45,6 +45,8 @@ class RenderSettings:
         merge_fraction: T relative to the bbox diagonal of the rendered points (paper: 1%).
         sigma: object-space splat std: a number (world units) or "auto" (per point, ``sigma_scale``
             x mean distance to the ``sigma_k`` nearest neighbours).
+        filter_variance: variance (pixels^2) of the screen-space low-pass filter (paper: 1). It
+            widens every splat, silhouettes included, by about sqrt(2 C filter_variance) pixels.
         backface_culling: drop splats facing away from the camera (paper: on).
         znear: near plane (camera units).
         background: value of empty pixels (scalar or per channel).
@@ -56,12 +58,13 @@ class RenderSettings:
     """
 
     K: int = 5
-    cutoff: float = 2.0
+    cutoff: float = 1.0
     merge_threshold: float | None = None
     merge_fraction: float = 0.01
     sigma: float | str = "auto"
     sigma_k: int = 8
-    sigma_scale: float = 0.5
+    sigma_scale: float = 1.0
+    filter_variance: float = 1.0
     backface_culling: bool = True
     znear: float = 1e-3
     background: float | tuple = 0.0
@@ -73,6 +76,8 @@ class RenderSettings:
     def __post_init__(self):
         if not 1 <= self.K <= 8:
             raise ValueError(f"K must be in [1, 8], got {self.K}")
+        if self.filter_variance <= 0:
+            raise ValueError(f"filter_variance must be > 0, got {self.filter_variance}")
         if self.cutoff <= 0:
             raise ValueError(f"cutoff must be > 0, got {self.cutoff}")
         if self.gradient not in ("dss", "rbf", "none"):
@@ -227,7 +232,8 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
     merge = settings.merge_threshold
     if merge is None:
         merge = settings.merge_fraction * max(bbox_diagonal(points.detach()), 1e-12)
-    splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling, settings.znear)
+    splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling, settings.znear,
+                            settings.filter_variance)
     attrs = shade(shading, points, normals, cameras, colors)
     C = attrs.shape[-1]
     bg = torch.as_tensor(settings.background, dtype=torch.float32, device=points.device).flatten()

@@ -56,7 +56,8 @@ class Splats:
 
 
 def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, sigma: torch.Tensor | float,
-                   cutoff: float = 2.0, backface_culling: bool = True, znear: float = 1e-3) -> Splats:
+                   cutoff: float = 1.0, backface_culling: bool = True, znear: float = 1e-3,
+                   filter_variance: float = 1.0) -> Splats:
     """Screen-space EWA splats.
 
     Args:
@@ -67,6 +68,8 @@ def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
         cutoff: C; the splat covers pixels with 1/2 d^T Sigma^-1 d <= C.
         backface_culling: drop splats whose normal points away from the camera.
         znear: drop splats closer than this depth (camera units).
+        filter_variance: variance (pixels^2) of the screen-space low-pass filter (paper: 1, i.e. I).
+            Must be > 0: it keeps edge-on splats finite.
 
     Returns:
         :class:`Splats` with a packed (V, N, 10) tensor, differentiable in points and normals.
@@ -98,12 +101,14 @@ def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
     det_A = (A11 * A22 - A12 * A12).clamp_min(0)
     det_J = torch.sqrt(det_A + 1e-30) * (n_len2[..., 0] > 1e-20)
 
+    if filter_variance <= 0:
+        raise ValueError(f"filter_variance must be > 0, got {filter_variance}")
     s2 = torch.as_tensor(sigma, dtype=points.dtype, device=points.device)
     s2 = (s2 * s2).expand(points.shape[0])[None]
-    S11 = s2 * A11 + 1.0
+    S11 = s2 * A11 + filter_variance
     S12 = s2 * A12
-    S22 = s2 * A22 + 1.0
-    det_S = S11 * S22 - S12 * S12  # >= 1 since A is PSD
+    S22 = s2 * A22 + filter_variance
+    det_S = S11 * S22 - S12 * S12  # >= filter_variance^2 since A is PSD
     conic_a = S22 / det_S
     conic_b2 = -2.0 * S12 / det_S
     conic_c = S11 / det_S
@@ -118,12 +123,12 @@ def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
     return Splats(packed)
 
 
-def auto_sigma(points: torch.Tensor, k: int = 8, scale: float = 0.5) -> torch.Tensor:
+def auto_sigma(points: torch.Tensor, k: int = 8, scale: float = 1.0) -> torch.Tensor:
     """Per-point object-space splat std from the local point spacing.
 
-    ``sigma_k = scale * mean distance of p_k to its k nearest neighbours`` (N,). With the default
-    cutoff C = 2 the splat radius is about 2 sigma, so neighbouring splats overlap and a uniformly
-    sampled surface renders without holes.
+    ``sigma_k = scale * mean distance of p_k to its k nearest neighbours`` (N,). The cutoff
+    ellipse reaches sqrt(2 C) standard deviations, so with the defaults (C = 1, scale = 1) a splat
+    covers its neighbours and a uniformly sampled surface renders without holes.
     """
     from .knn import knn
 

@@ -44,7 +44,7 @@ __all__ = ["visibility_grad_reference"]
 
 def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: Fragments, images: torch.Tensor,
                               grad: torch.Tensor, cameras: Cameras, background: torch.Tensor, window: int = 4,
-                              stride: int = 1, cutoff: float = 2.0, eps: float = 1e-5, mode: str = "dss") -> torch.Tensor:
+                              stride: int = 1, cutoff: float = 1.0, eps: float = 1e-5, mode: str = "dss") -> torch.Tensor:
     """dL/dp (N, 3) in world coordinates from the visibility term alone.
 
     Args:

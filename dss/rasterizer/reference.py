@@ -40,7 +40,7 @@ def splat_weight(packed_k: torch.Tensor, px: torch.Tensor, py: torch.Tensor):
     return q, packed_k[:, 5] * torch.exp(-0.5 * q)
 
 
-def rasterize(splats: Splats, image_size: tuple[int, int], K: int = 5, cutoff: float = 2.0,
+def rasterize(splats: Splats, image_size: tuple[int, int], K: int = 5, cutoff: float = 1.0,
               merge_threshold: float = 0.0) -> Fragments:
     """Top-K fragments per pixel (see :class:`Fragments`)."""
     packed = splats.packed.detach()
@@ -95,8 +95,8 @@ def rasterize(splats: Splats, image_size: tuple[int, int], K: int = 5, cutoff: f
         rank = torch.arange(len(pix), device=dev) - run_start
         k = rank < K
         idx_out[vi, pix[k], rank[k]] = pt[k].int()
-        depth_out[vi, pix[k], rank[k]] = dep[k]
-        rho_out[vi, pix[k], rank[k]] = rho[k]
+        depth_out[vi, pix[k], rank[k]] = dep[k].float()
+        rho_out[vi, pix[k], rank[k]] = rho[k].float()
     shape = (V, H, W, K)
     return Fragments(idx_out.view(shape), depth_out.view(shape), rho_out.view(shape), float(merge_threshold))
 

@@ -1,0 +1,474 @@
+// DSS rasteriser and visibility gradient on a CUDA GPU.
+//
+// Same contract as the CPU kernel (dss_cpu.cpp) and the torch reference: same packed splats, the
+// same per-pixel tests written as the same float32 expressions in the same order (build with
+// --fmad=false so no fused multiply-add changes a rounding), the same (depth, index) order of the
+// top-K cache. idx and depth therefore match the CPU kernel exactly; rho and the images differ
+// only by expf's last-bit differences (CUDA expf is within 2 ulp).
+//
+// Forward, with tile binning (no pixel loops over all points):
+//   1. bin_count: one thread per (view, splat) counts the 16x16 tiles its cutoff box touches;
+//   2. exclusive scan of the counts (done by the caller, torch.cumsum);
+//   3. bin_fill: one thread per (view, splat) writes its index into each touched tile's bin;
+//   4. rasterize_tiles: a block per (view, tile), a thread per pixel; the bin is streamed through
+//      shared memory in batches of 256 splats and each pixel keeps its top-K (depth, index) list
+//      in registers (K is a template parameter so the insertion unrolls); then the cache is
+//      written and the visible entries are blended (Eq. sumI).
+// Backward: one thread per (view, point) evaluates the window around the point exactly as
+// dss_cpu.cpp visibility_backward does, and writes its world-space contribution (double); a
+// second kernel sums the views of every point in view order. No atomics: deterministic.
+//
+// Only the CUDA runtime is needed here; the torch glue is dss_cuda_bind.cpp.
+#include "dss_cuda.h"
+
+#include <cuda_runtime.h>
+
+#include <climits>
+#include <cmath>
+#include <cstdint>
+
+// Kernel launch, as a macro so that tests/cuda_emu can run these kernels on CPU threads.
+#ifndef DSS_LAUNCH
+#define DSS_LAUNCH(kernel, grid, block, stream) kernel<<<grid, block, 0, stream>>>
+#endif
+
+namespace dss_cuda {
+namespace {
+
+constexpr int kBlockPixels = kTile * kTile;  // threads per tile block, also the batch size
+constexpr int kThreads1D = 256;
+
+struct Box {
+  int j0, j1, i0, i1;
+};
+
+// std::max(x, lo) then std::min(., hi), with the std:: comparison semantics.
+__device__ __forceinline__ float clampf(float x, float lo, float hi) {
+  const float y = (x < lo) ? lo : x;
+  return (hi < y) ? hi : y;
+}
+
+// Same arithmetic as dss_cpu.cpp splat_box() and reference.bbox().
+__device__ __forceinline__ Box splat_box(const float* __restrict__ s, int H, int W) {
+  const float j0 = clampf(floorf(s[0] - s[7] - 0.5f), -1.f, (float)W) - 1.f;
+  const float j1 = clampf(ceilf(s[0] + s[7] - 0.5f), -1.f, (float)W) + 1.f;
+  const float i0 = clampf(floorf(s[1] - s[8] - 0.5f), -1.f, (float)H) - 1.f;
+  const float i1 = clampf(ceilf(s[1] + s[8] - 0.5f), -1.f, (float)H) + 1.f;
+  Box b;
+  b.j0 = (int)clampf(j0, 0.f, (float)(W - 1));
+  b.j1 = (int)clampf(j1, 0.f, (float)(W - 1));
+  b.i0 = (int)clampf(i0, 0.f, (float)(H - 1));
+  b.i1 = (int)clampf(i1, 0.f, (float)(H - 1));
+  // A NaN centre converts to 0 on the GPU (undefined on the CPU); keep the box in the image anyway.
+  b.j0 = max(0, min(b.j0, W - 1));
+  b.j1 = max(0, min(b.j1, W - 1));
+  b.i0 = max(0, min(b.i0, H - 1));
+  b.i1 = max(0, min(b.i1, H - 1));
+  return b;
+}
+
+// (a*dx)*dx + (b2*dx)*dy + (c*dy)*dy, left to right, as dss_cpu.cpp quad().
+__device__ __forceinline__ float quad(float a, float b2, float c, float dx, float dy) {
+  const float t1 = a * dx * dx;
+  const float t2 = b2 * dx * dy;
+  const float t3 = c * dy * dy;
+  return (t1 + t2) + t3;
+}
+
+// Strict total order of cache entries: depth, then point index.
+__device__ __forceinline__ bool before(float za, int ia, float zb, int ib) {
+  return za < zb || (za == zb && ia < ib);
+}
+
+__global__ void bin_count_kernel(const float* __restrict__ P, int64_t V, int64_t N, int H, int W, int TX, int T,
+                                 int32_t* __restrict__ counts) {
+  const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (item >= V * N) return;
+  const float* s = P + item * kFields;
+  if (!(s[9] > 0.f)) return;
+  const Box b = splat_box(s, H, W);
+  if (b.j1 < b.j0 || b.i1 < b.i0) return;
+  const int64_t v = item / N;
+  int32_t* c = counts + v * T;
+  for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
+    for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) atomicAdd(c + ty * TX + tx, 1);
+}
+
+__global__ void bin_fill_kernel(const float* __restrict__ P, int64_t V, int64_t N, int H, int W, int TX, int T,
+                                int64_t* __restrict__ cursor, int32_t* __restrict__ list) {
+  const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (item >= V * N) return;
+  const float* s = P + item * kFields;
+  if (!(s[9] > 0.f)) return;
+  const Box b = splat_box(s, H, W);
+  if (b.j1 < b.j0 || b.i1 < b.i0) return;
+  const int64_t v = item / N;
+  const int32_t k = (int32_t)(item - v * N);
+  unsigned long long* cur = reinterpret_cast<unsigned long long*>(cursor + v * T);
+  for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
+    for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) {
+      const unsigned long long pos = atomicAdd(cur + ty * TX + tx, 1ULL);
+      list[pos] = k;
+    }
+}
+
+template <int K>
+__global__ void __launch_bounds__(kBlockPixels)
+    rasterize_tiles_kernel(const float* __restrict__ P, int64_t N, int H, int W, int TX, int T,
+                           const int64_t* __restrict__ bin_start, const int64_t* __restrict__ bin_end,
+                           const int32_t* __restrict__ list, float cutoff, float merge, const float* __restrict__ A,
+                           int C, const float* __restrict__ BG, int32_t* __restrict__ I, float* __restrict__ D,
+                           float* __restrict__ Rh, float* __restrict__ IMG, bool* __restrict__ Mk) {
+  // Splat batch in shared memory, structure of arrays (every thread reads the same entry: broadcast).
+  __shared__ float s_u[kBlockPixels], s_v[kBlockPixels], s_a[kBlockPixels], s_b2[kBlockPixels],
+      s_c[kBlockPixels], s_norm[kBlockPixels], s_z[kBlockPixels];
+  __shared__ int s_j0[kBlockPixels], s_j1[kBlockPixels], s_i0[kBlockPixels], s_i1[kBlockPixels],
+      s_k[kBlockPixels];
+
+  const int64_t item = blockIdx.x;  // v * T + t
+  const int64_t v = item / T;
+  const int t = (int)(item - v * T);
+  const int ty = t / TX, tx = t - (t / TX) * TX;
+  const int i = ty * kTile + (int)threadIdx.y;
+  const int j = tx * kTile + (int)threadIdx.x;
+  const int tid = (int)threadIdx.y * kTile + (int)threadIdx.x;
+  const bool inside = i < H && j < W;
+  const float px = (float)j + 0.5f, py = (float)i + 0.5f;
+
+  // Sorted top-K; empty slots are (+inf, INT_MAX), which every real entry precedes.
+  float kd[K], kr[K];
+  int ki[K];
+#pragma unroll
+  for (int e = 0; e < K; ++e) {
+    kd[e] = INFINITY;
+    ki[e] = INT_MAX;
+    kr[e] = 0.f;
+  }
+
+  const float* Pv = P + v * N * kFields;
+  const int64_t b_start = bin_start[item], b_end = bin_end[item];
+  for (int64_t base = b_start; base < b_end; base += kBlockPixels) {
+    const int n = (int)min((int64_t)kBlockPixels, b_end - base);
+    if (tid < n) {
+      const int k = list[base + tid];
+      const float* s = Pv + (int64_t)k * kFields;
+      const Box b = splat_box(s, H, W);
+      s_u[tid] = s[0];
+      s_v[tid] = s[1];
+      s_a[tid] = s[2];
+      s_b2[tid] = s[3];
+      s_c[tid] = s[4];
+      s_norm[tid] = s[5];
+      s_z[tid] = s[6];
+      s_j0[tid] = b.j0;
+      s_j1[tid] = b.j1;
+      s_i0[tid] = b.i0;
+      s_i1[tid] = b.i1;
+      s_k[tid] = k;
+    }
+    __syncthreads();
+    if (inside) {
+      for (int m = 0; m < n; ++m) {
+        // The CPU kernel tests exactly the pixels of the box; so do we.
+        if (i < s_i0[m] || i > s_i1[m] || j < s_j0[m] || j > s_j1[m]) continue;
+        const float dy = py - s_v[m];
+        const float dx = px - s_u[m];
+        const float q = quad(s_a[m], s_b2[m], s_c[m], dx, dy);
+        if (!(0.5f * q <= cutoff)) continue;
+        float cz = s_z[m];
+        int ck = s_k[m];
+        if (!before(cz, ck, kd[K - 1], ki[K - 1])) continue;  // full and behind the last entry
+        float cr = s_norm[m] * expf(-0.5f * q);
+        // One pass of compare-and-swap inserts the candidate; the last entry falls off.
+#pragma unroll
+        for (int e = 0; e < K; ++e) {
+          if (before(cz, ck, kd[e], ki[e])) {
+            const float td = kd[e], tr = kr[e];
+            const int ti = ki[e];
+            kd[e] = cz;
+            ki[e] = ck;
+            kr[e] = cr;
+            cz = td;
+            ck = ti;
+            cr = tr;
+          }
+        }
+      }
+    }
+    __syncthreads();  // the batch is overwritten next
+  }
+  if (!inside) return;
+
+  const int64_t g = (v * H + i) * (int64_t)W + j;
+  int c = 0;
+#pragma unroll
+  for (int e = 0; e < K; ++e) {
+    const bool real = ki[e] != INT_MAX;
+    c += real ? 1 : 0;
+    I[g * K + e] = real ? ki[e] : -1;
+    D[g * K + e] = real ? kd[e] : INFINITY;
+    Rh[g * K + e] = real ? kr[e] : 0.f;
+  }
+  if (c == 0) {
+    Mk[g] = false;
+    for (int ch = 0; ch < C; ++ch) IMG[g * C + ch] = BG[ch];
+    return;
+  }
+  const float lim = kd[0] + merge;
+  float den = 0.f;
+  float num[kMaxC];
+#pragma unroll
+  for (int ch = 0; ch < kMaxC; ++ch) num[ch] = 0.f;
+  bool go = true;  // entries are visible up to the first one deeper than lim (CPU: break)
+#pragma unroll
+  for (int e = 0; e < K; ++e) {
+    go = go && (e < c) && (kd[e] <= lim);
+    if (go) {
+      const float w = kr[e];
+      den += w;
+      if (C > 0) {
+        const float* a = A + ((int64_t)v * N + ki[e]) * C;
+#pragma unroll
+        for (int ch = 0; ch < kMaxC; ++ch)
+          if (ch < C) num[ch] += w * a[ch];
+      }
+    }
+  }
+  Mk[g] = den > 0.f;
+#pragma unroll
+  for (int ch = 0; ch < kMaxC; ++ch)
+    if (ch < C) IMG[g * C + ch] = den > 0.f ? num[ch] / den : BG[ch];
+}
+
+// Per (view, point): the window loop of dss_cpu.cpp visibility_backward, expression for expression.
+template <int CMAX>
+__global__ void visibility_kernel(const float* __restrict__ P, const float* __restrict__ A,
+                                  const int32_t* __restrict__ I, const float* __restrict__ D,
+                                  const float* __restrict__ Rh, const float* __restrict__ IMG,
+                                  const float* __restrict__ GR, const float* __restrict__ Rm,
+                                  const float* __restrict__ F, const float* __restrict__ PP,
+                                  const float* __restrict__ BG, int64_t V, int64_t N, int H, int W, int K, int C,
+                                  int window, int stride, float cutoff, float merge, float eps, int mode,
+                                  double* __restrict__ partial) {
+  const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (item >= V * N) return;
+  const int64_t v = item / N;
+  const int32_t k = (int32_t)(item - v * N);
+  double* out = partial + item * 3;
+  const float* s = P + item * kFields;
+  if (!(s[9] > 0.f)) {
+    out[0] = 0.0;
+    out[1] = 0.0;
+    out[2] = 0.0;
+    return;
+  }
+  const float u = s[0], vv = s[1], z = s[6], nk = s[5];
+  const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1];
+  const float X = (u - cx) * z / f, Y = (vv - cy) * z / f;
+  const float* wk = A + item * C;
+  const int ic = (int)floorf(vv), jc = (int)floorf(u);
+  double acc[3] = {0, 0, 0};
+  for (int64_t dy = -window; dy <= window; dy += stride) {
+    const int64_t i = ic + dy;
+    if (i < 0 || i >= H) continue;
+    for (int64_t dx = -window; dx <= window; dx += stride) {
+      const int64_t j = jc + dx;
+      if (j < 0 || j >= W) continue;
+      const int64_t g = (v * H + i) * W + j;
+      const float* gp = GR + g * C;
+      bool nz = false;
+      for (int ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
+      if (!nz) continue;
+      const int32_t* pi = I + g * K;
+      const float* pd = D + g * K;
+      const float* pr = Rh + g * K;
+      int nvalid = 0;
+      while (nvalid < K && pi[nvalid] >= 0) ++nvalid;
+      const float d0 = nvalid > 0 ? pd[0] : INFINITY;
+      bool k_visible = false;
+      for (int e = 0; e < nvalid; ++e)
+        if (pi[e] == k && pd[e] <= d0 + merge) k_visible = true;
+      float num[CMAX], den = 0.f;
+#pragma unroll
+      for (int ch = 0; ch < CMAX; ++ch) num[ch] = 0.f;
+      int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
+      if (k_visible) {
+        kase = 2;
+        float front = INFINITY;
+        for (int e = 0; e < nvalid; ++e)
+          if (pi[e] != k) {
+            front = pd[e];
+            break;
+          }
+        for (int e = 0; e < nvalid; ++e) {
+          if (pi[e] == k || !(pd[e] <= front + merge)) continue;
+          den += pr[e];
+          const float* a = A + (v * N + pi[e]) * C;
+#pragma unroll
+          for (int ch = 0; ch < CMAX; ++ch)
+            if (ch < C) num[ch] += pr[e] * a[ch];
+        }
+      } else {
+        kase = (nvalid == 0 || z <= d0 + merge) ? 0 : 1;
+        const float zf = kase == 0 ? ((d0 < z) ? d0 : z) : d0;  // std::min(z, d0)
+        den = nk;
+#pragma unroll
+        for (int ch = 0; ch < CMAX; ++ch)
+          if (ch < C) num[ch] = nk * wk[ch];
+        for (int e = 0; e < nvalid; ++e) {
+          if (pi[e] == k || !(pd[e] <= zf + merge)) continue;
+          den += pr[e];
+          const float* a = A + (v * N + pi[e]) * C;
+#pragma unroll
+          for (int ch = 0; ch < CMAX; ++ch)
+            if (ch < C) num[ch] += pr[e] * a[ch];
+        }
+      }
+      const float* ip = IMG + g * C;
+      float gd = 0.f;
+#pragma unroll
+      for (int ch = 0; ch < CMAX; ++ch) {
+        if (ch < C) {
+          const float inew = den > 0.f ? num[ch] / den : BG[ch];
+          gd += gp[ch] * (inew - ip[ch]);
+        }
+      }
+      const float px = (float)j + 0.5f, py = (float)i + 0.5f;
+      if (mode == 0) {  // dss: linearised step between the two visibility states
+        if (!(gd < 0.f)) continue;  // Eq. filteredG
+        if (kase == 2) {
+          const float ddx = px - u, ddy = py - vv;
+          const float sd = sqrtf(ddx * ddx + ddy * ddy);
+          if (sd < 1e-6f) continue;
+          const float ux = ddx / sd, uy = ddy / sd;
+          const float qu = quad(s[2], s[3], s[4], ux, uy);
+          const float r = sqrtf(2.f * cutoff / ((qu < 1e-20f) ? 1e-20f : qu));  // std::max(qu, 1e-20f)
+          const float rs = r - sd;
+          const float steps[2] = {-((rs < 0.f) ? 0.f : rs), r + sd};  // -(std::max(r - sd, 0.f))
+#pragma unroll
+          for (int m = 0; m < 2; ++m) {
+            const float mx = steps[m] * ux * z / f, my = steps[m] * uy * z / f;
+            const float coef = gd / (mx * mx + my * my + eps);
+            acc[0] += coef * mx;
+            acc[1] += coef * my;
+          }
+        } else {
+          const float zt = kase == 1 ? d0 : z;
+          const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - z;
+          const float coef = gd / (mx * mx + my * my + mz * mz + eps);
+          acc[0] += coef * mx;
+          acc[1] += coef * my;
+          acc[2] += coef * mz;
+        }
+      } else {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
+        const float ddx = px - u, ddy = py - vv;
+        const float q = quad(s[2], s[3], s[4], ddx, ddy);
+        const float h = expf(-0.5f * q);
+        const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
+        const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);
+        const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
+        const float c = sgn * gd;
+        acc[0] += c * (f / z) * gu;
+        acc[1] += c * (f / z) * gv;
+        acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
+      }
+    }
+  }
+  const float* Rv = Rm + v * 9;  // world contribution = R^T acc
+#pragma unroll
+  for (int a = 0; a < 3; ++a) out[a] = Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
+}
+
+__global__ void reduce_views_kernel(const float* __restrict__ P, const double* __restrict__ partial, int64_t V,
+                                    int64_t N, float* __restrict__ out) {
+  const int64_t k = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (k >= N) return;
+  double gw[3] = {0, 0, 0};
+  for (int64_t v = 0; v < V; ++v) {
+    const int64_t item = v * N + k;
+    if (!(P[item * kFields + 9] > 0.f)) continue;
+    for (int a = 0; a < 3; ++a) gw[a] += partial[item * 3 + a];
+  }
+  for (int a = 0; a < 3; ++a) out[k * 3 + a] = (float)gw[a];
+}
+
+inline unsigned int blocks_for(int64_t n, int threads) { return (unsigned int)((n + threads - 1) / threads); }
+
+inline int tiles_x(int W) { return (W + kTile - 1) / kTile; }
+inline int tiles_y(int H) { return (H + kTile - 1) / kTile; }
+
+}  // namespace
+
+cudaError_t launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
+                             cudaStream_t stream) {
+  const int TX = tiles_x(W), T = TX * tiles_y(H);
+  if (V * N == 0 || T == 0) return cudaSuccess;
+  DSS_LAUNCH(bin_count_kernel, blocks_for(V * N, kThreads1D), kThreads1D, stream)(packed, V, N, H, W, TX, T, counts);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor,
+                            int32_t* list, cudaStream_t stream) {
+  const int TX = tiles_x(W), T = TX * tiles_y(H);
+  if (V * N == 0 || T == 0) return cudaSuccess;
+  DSS_LAUNCH(bin_fill_kernel, blocks_for(V * N, kThreads1D), kThreads1D, stream)(packed, V, N, H, W, TX, T, cursor,
+                                                                               list);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W, int K,
+                                   const int64_t* bin_start, const int64_t* bin_end, const int32_t* list,
+                                   float cutoff, float merge, const float* attrs, int C, const float* background,
+                                   int32_t* idx, float* depth, float* rho, float* images, bool* mask,
+                                   cudaStream_t stream) {
+  const int TX = tiles_x(W), T = TX * tiles_y(H);
+  if (V == 0 || T == 0) return cudaSuccess;
+  if (K < 1 || K > kMaxK || C < 0 || C > kMaxC) return cudaErrorInvalidValue;
+  const dim3 grid((unsigned int)(V * T)), block(kTile, kTile);
+#define DSS_TILES(KK)                                                                                         \
+  case KK:                                                                                                    \
+    DSS_LAUNCH(rasterize_tiles_kernel<KK>, grid, block, stream)(packed, N, H, W, TX, T, bin_start, bin_end,    \
+                                                                list, cutoff, merge, attrs, C, background, idx, \
+                                                                depth, rho, images, mask);                      \
+    break;
+  switch (K) {
+    DSS_TILES(1)
+    DSS_TILES(2)
+    DSS_TILES(3)
+    DSS_TILES(4)
+    DSS_TILES(5)
+    DSS_TILES(6)
+    DSS_TILES(7)
+    DSS_TILES(8)
+  }
+#undef DSS_TILES
+  return cudaGetLastError();
+}
+
+cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
+                              const float* rho, const float* images, const float* grad, const float* R,
+                              const float* focal, const float* principal, const float* background, int64_t V,
+                              int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
+                              float merge, float eps, int mode, double* partial, cudaStream_t stream) {
+  if (V * N == 0) return cudaSuccess;
+  if (K < 1 || K > kMaxK || C < 1 || C > kMaxC || stride < 1 || window < 0) return cudaErrorInvalidValue;
+  const unsigned int blocks = blocks_for(V * N, 128);
+  if (C <= 4)
+    DSS_LAUNCH(visibility_kernel<4>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R, focal,
+                                                     principal, background, V, N, H, W, K, C, window, stride,
+                                                     cutoff, merge, eps, mode, partial);
+  else
+    DSS_LAUNCH(visibility_kernel<kMaxC>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R, focal,
+                                                         principal, background, V, N, H, W, K, C, window, stride,
+                                                         cutoff, merge, eps, mode, partial);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_reduce_views(const float* packed, const double* partial, int64_t V, int64_t N, float* out,
+                                cudaStream_t stream) {
+  if (N == 0) return cudaSuccess;
+  DSS_LAUNCH(reduce_views_kernel, blocks_for(N, kThreads1D), kThreads1D, stream)(packed, partial, V, N, out);
+  return cudaGetLastError();
+}
+
+}  // namespace dss_cuda

@@ -1,0 +1,57 @@
+// Host launchers of the DSS CUDA kernels (dss_cuda.cu), called by the torch glue
+// (dss_cuda_bind.cpp). Raw pointers and the CUDA runtime only, so dss_cuda.cu compiles with
+// plain nvcc, without torch headers (tests/test_cuda_build.py does exactly that).
+//
+// Layouts (all row-major, contiguous):
+//   packed  (V, N, 10) f32  u v conic_a conic_b2 conic_c norm depth rx ry valid (dss/splats.py)
+//   attrs   (V, N, C)  f32  per-view point attributes, C <= 16
+//   cache   (V, H, W, K)    idx i32 (-1 empty), depth f32 (+inf empty), rho f32 (0 empty); K <= 8
+//   images  (V, H, W, C) f32, mask (V, H, W) bool (1 byte)
+// Every launcher returns the launch status (cudaGetLastError()); a zero-sized launch is a no-op.
+#pragma once
+
+#include <cuda_runtime_api.h>
+
+#include <cstdint>
+
+namespace dss_cuda {
+
+constexpr int kFields = 10;
+constexpr int kTile = 16;     // screen tiles are kTile x kTile pixels, one CUDA block each
+constexpr int kMaxK = 8;
+constexpr int kMaxC = 16;
+
+// Binning pass 1: counts[v * T + t] += 1 for every tile t touched by the box of splat (v, k).
+// counts (V * T) i32 must be zeroed; T = ceil(H / kTile) * ceil(W / kTile).
+cudaError_t launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
+                             cudaStream_t stream);
+
+// Binning pass 2: list[cursor[v * T + t]++] = k. cursor (V * T) i64 starts as the exclusive
+// prefix sum of counts; list holds sum(counts) entries. The order inside a bin does not matter:
+// the per-pixel top-K is a strict (depth, index) order, so the result is order-independent.
+cudaError_t launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor,
+                            int32_t* list, cudaStream_t stream);
+
+// One block per (view, tile), one thread per pixel: top-K insertion over the tile's bin, then the
+// cache write-out and the blend of the visible entries (Eq. sumI). bin_start / bin_end (V * T) i64.
+// attrs / background / images may be null (C = 0): only the cache and the mask are written.
+cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W, int K,
+                                   const int64_t* bin_start, const int64_t* bin_end, const int32_t* list,
+                                   float cutoff, float merge, const float* attrs, int C, const float* background,
+                                   int32_t* idx, float* depth, float* rho, float* images, bool* mask,
+                                   cudaStream_t stream);
+
+// Visibility gradient, one thread per (view, point): partial (V, N, 3) f64 receives R_v^T acc_v,
+// the world-space contribution of view v (zero where the splat is not valid). mode 0: dss, 1: rbf.
+cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
+                              const float* rho, const float* images, const float* grad, const float* R,
+                              const float* focal, const float* principal, const float* background, int64_t V,
+                              int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
+                              float merge, float eps, int mode, double* partial, cudaStream_t stream);
+
+// out (N, 3) f32 = sum over views v = 0..V-1 in order (double) of partial[v, k], skipping views
+// where splat (v, k) is not valid: the CPU kernel's summation order, hence deterministic.
+cudaError_t launch_reduce_views(const float* packed, const double* partial, int64_t V, int64_t N, float* out,
+                                cudaStream_t stream);
+
+}  // namespace dss_cuda

@@ -1,0 +1,258 @@
+"""Nearest-neighbour search for point clouds that scales to ~1e5 points on a CPU.
+
+Two backends, one contract:
+
+* ``"scipy"``: :class:`scipy.spatial.cKDTree` built on a detached float64 NumPy copy of the
+  points and queried with ``workers=-1`` (all cores). O(N log N), no N x N matrix. Used for CPU
+  tensors.
+* ``"torch"``: brute force with :func:`torch.cdist` over chunks of query rows followed by
+  :func:`torch.topk`; memory is bounded by ``chunk_rows x M`` distances, never the whole
+  N x M matrix. Used for GPU tensors (no host round trip) and for small CPU inputs.
+
+``backend="auto"`` picks ``torch`` for non-CPU tensors or when ``N*M`` is small, else ``scipy``.
+
+Autograd: the search itself is not differentiable. The returned index tensors are integers
+and the returned distances are detached, so a neighbour *set* is a constant for autograd.
+Callers that need gradients gather the positions with the indices
+(``points[idx.clamp(min=0)]``) and recompute the differences; gradients then flow through the
+gathered positions, exactly as in the paper's regularisers (and as in the official code, where
+neighbour lists come from a non-differentiable kNN as well).
+
+Padding convention: when fewer than ``k`` neighbours exist (``k`` larger than the number of
+reference points, or beyond the radius for :func:`radius_neighbors`) the missing entries have
+index ``-1`` and distance ``inf``. Rows are sorted by increasing distance.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Neighbors", "knn", "radius_neighbors", "valid_mask", "gather_neighbors"]
+
+# Below this many query x reference pairs the brute-force torch path is as fast as building a tree.
+_SMALL_PAIRS = 1 << 22
+# Memory budget (number of float32 distances) of one brute-force chunk.
+_CHUNK_ELEMENTS = 1 << 24
+
+
+@dataclass
+class Neighbors:
+    """A neighbour list.
+
+    Attributes:
+        idx: (N, k) int64 indices into the reference points, ``-1`` where missing.
+        dist: (N, k) Euclidean distances (detached, dtype of the input), ``inf`` where missing.
+    """
+
+    idx: torch.Tensor
+    dist: torch.Tensor
+
+    @property
+    def mask(self) -> torch.Tensor:
+        """(N, k) bool, True where a neighbour exists."""
+        return self.idx >= 0
+
+
+def _check_points(points: torch.Tensor, name: str) -> None:
+    if not isinstance(points, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(points).__name__}")
+    if points.dim() != 2 or points.shape[1] < 1:
+        raise ValueError(f"{name} must have shape (N, D), got {tuple(points.shape)}")
+    if not torch.is_floating_point(points):
+        raise TypeError(f"{name} must be floating point, got {points.dtype}")
+
+
+def _pick_backend(backend: str, ref: torch.Tensor, query: torch.Tensor) -> str:
+    if backend not in ("auto", "scipy", "torch"):
+        raise ValueError(f"unknown kNN backend {backend!r}; expected 'auto', 'scipy' or 'torch'")
+    if backend != "auto":
+        return backend
+    if ref.device.type != "cpu":
+        return "torch"
+    if ref.shape[0] * query.shape[0] <= _SMALL_PAIRS:
+        return "torch"
+    return "scipy"
+
+
+def _scipy_query(
+    ref: torch.Tensor,
+    query: torch.Tensor,
+    k: int,
+    radius: float | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    from scipy.spatial import cKDTree
+
+    ref_np = ref.detach().to("cpu", torch.float64).numpy()
+    query_np = ref_np if query is ref else query.detach().to("cpu", torch.float64).numpy()
+    if not (np.isfinite(ref_np).all() and np.isfinite(query_np).all()):
+        raise ValueError("kNN input contains NaN or inf coordinates")
+    m = ref_np.shape[0]
+    tree = cKDTree(ref_np)
+    upper = np.inf if radius is None else float(radius)
+    dist, idx = tree.query(query_np, k=k, distance_upper_bound=upper, workers=-1)
+    dist = np.asarray(dist, dtype=np.float64).reshape(query_np.shape[0], k)
+    idx = np.asarray(idx, dtype=np.int64).reshape(query_np.shape[0], k)
+    missing = idx >= m  # cKDTree marks missing neighbours with index m and distance inf
+    idx[missing] = -1
+    dist[missing] = np.inf
+    idx_t = torch.from_numpy(idx).to(query.device)
+    dist_t = torch.from_numpy(dist).to(device=query.device, dtype=query.dtype)
+    return idx_t, dist_t
+
+
+def _torch_query(
+    ref: torch.Tensor,
+    query: torch.Tensor,
+    k: int,
+    radius: float | None,
+    chunk_rows: int | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    ref = ref.detach()
+    query = query.detach()
+    n, m = query.shape[0], ref.shape[0]
+    kk = min(k, m)
+    if chunk_rows is None:
+        chunk_rows = max(1, _CHUNK_ELEMENTS // max(m, 1))
+    idx_out = torch.full((n, k), -1, dtype=torch.int64, device=query.device)
+    dist_out = torch.full((n, k), float("inf"), dtype=query.dtype, device=query.device)
+    if kk == 0 or n == 0:
+        return idx_out, dist_out
+    for start in range(0, n, chunk_rows):
+        q = query[start : start + chunk_rows]
+        # Exact differences (no |a|^2+|b|^2-2ab expansion): near-duplicate points must not get
+        # cancellation errors.
+        d = torch.cdist(q, ref, compute_mode="donot_use_mm_for_euclid_dist")
+        dk, ik = torch.topk(d, kk, dim=1, largest=False, sorted=True)
+        dist_out[start : start + q.shape[0], :kk] = dk
+        idx_out[start : start + q.shape[0], :kk] = ik
+    if radius is not None:
+        outside = dist_out > radius
+        idx_out[outside] = -1
+        dist_out[outside] = float("inf")
+    return idx_out, dist_out
+
+
+def _drop_self(idx: torch.Tensor, dist: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Remove one entry per row: the query point itself, or the last column if it is absent.
+
+    With duplicate points the query itself may be outranked by its duplicates, so "the first
+    column" is not always the point itself; we remove the column that holds ``i``.
+    """
+    n = idx.shape[0]
+    rows = torch.arange(n, device=idx.device).unsqueeze(1)
+    is_self = idx == rows
+    # Keep only the first self hit (there is at most one, but be safe).
+    first = is_self & (is_self.long().cumsum(1) == 1)
+    no_self = ~first.any(1)
+    first[no_self, -1] = True
+    keep = ~first
+    return idx[keep].view(n, k), dist[keep].view(n, k)
+
+
+def knn(
+    points: torch.Tensor,
+    k: int,
+    query: torch.Tensor | None = None,
+    *,
+    exclude_self: bool = False,
+    backend: str = "auto",
+    chunk_rows: int | None = None,
+) -> Neighbors:
+    """k nearest neighbours of each query point among ``points``.
+
+    Args:
+        points: (M, D) reference points (any float dtype, any device).
+        k: number of neighbours (>= 1). If fewer reference points exist, the row is padded
+            with index -1 / distance inf.
+        query: (N, D) query points; default ``points`` itself.
+        exclude_self: only when ``query`` is None: drop point ``i`` from its own list (the
+            result still has ``k`` columns).
+        backend: ``"auto"``, ``"scipy"`` (cKDTree, CPU) or ``"torch"`` (chunked brute force).
+        chunk_rows: query rows per brute-force chunk (torch backend); default keeps a chunk
+            at about 16M distances.
+
+    Returns:
+        :class:`Neighbors` with ``idx`` (N, k) int64 and ``dist`` (N, k) on the query's device,
+        sorted by increasing distance. Both are constants for autograd.
+    """
+    _check_points(points, "points")
+    if query is not None:
+        _check_points(query, "query")
+        if query.shape[1] != points.shape[1]:
+            raise ValueError(
+                f"query has dimension {query.shape[1]} but points have {points.shape[1]}"
+            )
+        if exclude_self:
+            raise ValueError("exclude_self is only meaningful when query is None")
+    if int(k) != k or k < 1:
+        raise ValueError(f"k must be a positive integer, got {k}")
+    k = int(k)
+    q = points if query is None else query
+    kq = k + 1 if exclude_self else k
+    which = _pick_backend(backend, points, q)
+    if which == "scipy":
+        idx, dist = _scipy_query(points, q, kq, None)
+    else:
+        idx, dist = _torch_query(points, q, kq, None, chunk_rows)
+    if exclude_self:
+        idx, dist = _drop_self(idx, dist, k)
+    return Neighbors(idx=idx, dist=dist)
+
+
+def radius_neighbors(
+    points: torch.Tensor,
+    radius: float,
+    k_max: int,
+    query: torch.Tensor | None = None,
+    *,
+    exclude_self: bool = False,
+    backend: str = "auto",
+    chunk_rows: int | None = None,
+) -> Neighbors:
+    """At most ``k_max`` nearest neighbours within distance ``radius`` (inclusive).
+
+    Same contract as :func:`knn`; entries farther than ``radius`` are padded with index -1 and
+    distance inf. The cap ``k_max`` keeps the output a dense (N, k_max) tensor (no ragged lists).
+    """
+    if not (radius > 0 and np.isfinite(radius)):
+        raise ValueError(f"radius must be a positive finite number, got {radius}")
+    _check_points(points, "points")
+    if query is not None:
+        _check_points(query, "query")
+        if exclude_self:
+            raise ValueError("exclude_self is only meaningful when query is None")
+    if int(k_max) != k_max or k_max < 1:
+        raise ValueError(f"k_max must be a positive integer, got {k_max}")
+    k_max = int(k_max)
+    q = points if query is None else query
+    kq = k_max + 1 if exclude_self else k_max
+    which = _pick_backend(backend, points, q)
+    if which == "scipy":
+        idx, dist = _scipy_query(points, q, kq, float(radius))
+    else:
+        idx, dist = _torch_query(points, q, kq, float(radius), chunk_rows)
+    if exclude_self:
+        idx, dist = _drop_self(idx, dist, k_max)
+    return Neighbors(idx=idx, dist=dist)
+
+
+def valid_mask(idx: torch.Tensor) -> torch.Tensor:
+    """(N, k) bool mask of existing neighbours (index >= 0)."""
+    return idx >= 0
+
+
+def gather_neighbors(values: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Gather per-point values (M, C) at neighbour indices (N, k) -> (N, k, C).
+
+    Missing neighbours (-1) gather row 0; mask them with :func:`valid_mask`. Differentiable
+    with respect to ``values``.
+    """
+    if values.shape[0] == 0:
+        return values.new_zeros((*idx.shape, *values.shape[1:]))
+    return values[idx.clamp(min=0)]

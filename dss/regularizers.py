@@ -1,0 +1,536 @@
+"""Surface regularisers of DSS: repulsion and projection on a weighted PCA.
+
+Paper section "Surface regularization" and Appendix "Parameter discussion".
+
+Notation (all per point ``i`` and neighbour ``k``):
+
+* Neighbourhood: the ``k`` nearest other points of ``p_i`` (default 16, from
+  :mod:`dss.knn`), restricted to ``||p_k - p_i|| <= D`` (the rest are masked out).
+* Weights (paper Eq. psi, theta, phi)::
+
+      psi_ik   = exp(-||p_i - p_k||^2 / D^2)
+      theta_ik = exp(-(1 - n_k.n_i)^2 / max(1e-5, 1 - cos(Theta)))
+      phi_ik   = 1 / (o_k + 1)
+      w_ik     = psi_ik theta_ik phi_ik / sum_k' psi_ik' theta_ik' phi_ik'
+
+  with ``o_k`` the occlusion count of point ``k`` over the current views (given by the
+  caller; ``None`` means 0 for every point) and unit normals ``n`` (``None`` means theta = 1).
+* Weighted PCA: weighted mean ``c_i = sum_k w_ik p_k``. The paper takes the SVD of the
+  weighted vectors ``w_ik (p_k - c_i)``; its right singular vectors are the eigenvectors of
+  ``C_i = sum_k w_ik^2 (p_k - c_i)(p_k - c_i)^T``, which we form directly and decompose with
+  batched :func:`torch.linalg.eigh` (a 3x3 ``eigh`` per point is much cheaper than an SVD of a
+  K x 3 matrix per point). ``covariance_weight="linear"`` uses the textbook
+  ``sum_k w_ik (...)(...)^T`` instead. The two eigenvectors with the largest eigenvalues span
+  the tangent plane (``V~``), the smallest one is the normal direction (``V_n``).
+* Repulsion (paper)::
+
+      L_r = 1/N sum_i sum_k psi_ik / (d_ik^2 + 1e-4),   d_ik = ||V~ V~^T (p_i - p_k)||
+
+* Projection (paper Eq. projLoss)::
+
+      L_p = 1/N sum_i sum_k w_ik d_ik^2,   d_ik = V_n^T (p_i - p_k)
+
+  Because ``sum_k w_ik = 1`` and ``c_i`` is the ``w``-weighted mean, this splits exactly into
+  ``((p_i - c_i).V_n)^2 + sum_k w_ik ((p_k - c_i).V_n)^2``: the squared distance of ``p_i``
+  to its local weighted plane plus the weighted spread of the neighbourhood across that plane.
+  Minimising it pulls ``p_i`` onto the plane *and* flattens its neighbourhood. We implement the
+  paper's formula as written (``mode="paper"``, the default); ``mode="point_to_plane"`` keeps
+  only the first part, ``((p_i - c_i).V_n)^2`` with ``c_i`` differentiable.
+
+What is constant for autograd (and why):
+
+* The neighbour sets (integer indices from a kNN).
+* The PCA frame (``V~``, ``V_n``, ``c_i`` inside the covariance). Differentiating through a
+  per-point eigen-decomposition is unstable: the gradient of ``eigh`` divides by eigenvalue
+  gaps, which vanish on planar or isotropic neighbourhoods (exactly the configurations the
+  regularisers produce) and give inf/NaN. The frame changes slowly between steps, so treating
+  it as fixed for one step is a sound linearisation; the official DSS code detaches it too.
+* The weights ``psi``, ``theta``, ``phi``, ``w`` and the normals. Differentiating ``psi``
+  in the projection term would let a point lower its loss by running away from neighbours
+  (shrinking their weight) instead of moving onto the plane, and in the repulsion term it
+  would push points apart along the normal, off the surface. The official code detaches the
+  weights as well.
+
+Gradients therefore flow only through the gathered positions ``p_i - p_k`` (both ``p_i`` and
+``p_k`` receive them): repulsion forces are purely tangential, projection forces purely normal.
+
+Bandwidth: ``D = 4 sqrt(diag / N)`` (paper; ``diag`` = bounding-box diagonal of the *initial*
+shape, ``N`` its number of points; note the paper's formula is not dimensionally a length, we
+use it as written), ``Theta = pi/3``; for large deformations the projection term may use the
+larger ``D = 0.1 sqrt(diag)`` (``bandwidth_rule="large"``) which pulls outliers to the nearest
+surface. The modules fix ``D`` from the first point cloud they see unless it is given.
+
+Neighbours are found with :func:`dss.knn.knn` on every call, or passed in by the caller
+(``neighbors=``) to reuse one search for both terms or across steps (see
+:func:`find_neighbors`).
+
+Scale: both losses are sums over neighbours averaged over points, so the gradient on one point
+is O(1/N). ``eps = 1e-4`` is an absolute squared length (the paper's constant), so ``L_r``
+depends on the scene scale; the paper's shapes are normalised to a unit-size bounding box.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, replace
+
+import torch
+import torch.nn.functional as F
+
+from dss.knn import Neighbors, gather_neighbors, knn
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "RegularizerConfig",
+    "LocalFrames",
+    "RepulsionLoss",
+    "ProjectionLoss",
+    "bbox_diagonal",
+    "default_bandwidth",
+    "large_deformation_bandwidth",
+    "bandwidth_for",
+    "find_neighbors",
+    "local_frames",
+    "repulsion_loss",
+    "projection_loss",
+]
+
+DEFAULT_K = 16
+DEFAULT_SHARPNESS = math.pi / 3
+REPULSION_EPS = 1e-4
+
+
+# ----------------------------------------------------------------------------- bandwidths
+
+
+def bbox_diagonal(points: torch.Tensor) -> float:
+    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
+    if points.shape[0] == 0:
+        return 0.0
+    p = points.detach()
+    return float((p.max(0).values - p.min(0).values).norm())
+
+
+def default_bandwidth(diag: float, n: int) -> float:
+    """Paper default ``D = 4 sqrt(diag / N)``."""
+    if n < 1:
+        raise ValueError(f"number of points must be >= 1, got {n}")
+    return 4.0 * math.sqrt(max(diag, 0.0) / n)
+
+
+def large_deformation_bandwidth(diag: float) -> float:
+    """Paper's larger projection bandwidth for large deformation, ``D = 0.1 sqrt(diag)``."""
+    return 0.1 * math.sqrt(max(diag, 0.0))
+
+
+def bandwidth_for(points: torch.Tensor, rule: str = "default") -> float:
+    """Bandwidth from an (initial) point cloud: ``rule`` is ``"default"`` or ``"large"``."""
+    diag = bbox_diagonal(points)
+    if rule == "default":
+        d = default_bandwidth(diag, points.shape[0])
+    elif rule == "large":
+        d = large_deformation_bandwidth(diag)
+    else:
+        raise ValueError(f"unknown bandwidth rule {rule!r}; expected 'default' or 'large'")
+    if not d > 0:
+        raise ValueError(
+            f"bandwidth rule {rule!r} gives D={d} for a cloud of {points.shape[0]} points with "
+            f"bounding-box diagonal {diag}; give the bandwidth explicitly"
+        )
+    return d
+
+
+# ----------------------------------------------------------------------------- config
+
+
+@dataclass
+class RegularizerConfig:
+    """Settings of one regulariser term.
+
+    Attributes:
+        k: neighbours per point (paper: 16 in our default; the official code used 32).
+        bandwidth: ``D`` in the scene's units; ``None`` = derive it from the first (initial)
+            cloud with ``bandwidth_rule``.
+        bandwidth_rule: ``"default"`` (4 sqrt(diag/N)) or ``"large"`` (0.1 sqrt(diag)).
+        sharpness_angle: ``Theta`` in radians (pi/3).
+        eps: repulsion's ``1e-4`` in ``psi / (d^2 + eps)``.
+        projection_mode: ``"paper"`` or ``"point_to_plane"`` (see module docstring).
+        covariance_weight: ``"squared"`` (paper: SVD of w-weighted vectors) or ``"linear"``.
+        knn_backend: ``"auto"``, ``"scipy"`` or ``"torch"`` (see :mod:`dss.knn`).
+    """
+
+    k: int = DEFAULT_K
+    bandwidth: float | None = None
+    bandwidth_rule: str = "default"
+    sharpness_angle: float = DEFAULT_SHARPNESS
+    eps: float = REPULSION_EPS
+    projection_mode: str = "paper"
+    covariance_weight: str = "squared"
+    knn_backend: str = "auto"
+
+    def __post_init__(self):
+        if int(self.k) != self.k or self.k < 1:
+            raise ValueError(f"k must be a positive integer, got {self.k}")
+        if self.bandwidth is not None and not (
+            self.bandwidth > 0 and math.isfinite(self.bandwidth)
+        ):
+            raise ValueError(f"bandwidth must be positive and finite, got {self.bandwidth}")
+        if self.bandwidth_rule not in ("default", "large"):
+            raise ValueError(
+                f"bandwidth_rule must be 'default' or 'large', got {self.bandwidth_rule!r}"
+            )
+        if not self.eps > 0:
+            raise ValueError(f"eps must be positive, got {self.eps}")
+        if self.projection_mode not in ("paper", "point_to_plane"):
+            raise ValueError(
+                f"projection_mode must be 'paper' or 'point_to_plane', got {self.projection_mode!r}"
+            )
+        if self.covariance_weight not in ("squared", "linear"):
+            raise ValueError(
+                f"covariance_weight must be 'squared' or 'linear', got {self.covariance_weight!r}"
+            )
+
+
+# ----------------------------------------------------------------------------- core
+
+
+@dataclass
+class LocalFrames:
+    """Weighted-PCA frames of every point's neighbourhood.
+
+    Attributes:
+        idx: (N, K) int64 neighbour indices (-1 = none).
+        valid: (N, K) bool, neighbour exists and lies within the bandwidth.
+        diff: (N, K, 3) ``p_i - p_k`` (differentiable w.r.t. the points; zero where invalid).
+        psi: (N, K) spatial weights (detached; 0 where invalid).
+        weights: (N, K) normalised ``w_ik`` (detached; rows sum to 1, or 0 without neighbours).
+        centroid: (N, 3) weighted mean ``c_i`` (detached).
+        tangent: (N, 3, 2) the first two principal directions (detached).
+        normal: (N, 3) the last principal direction (detached, unit, sign arbitrary).
+        eigenvalues: (N, 3) ascending eigenvalues of the weighted covariance.
+        bandwidth: the ``D`` used.
+    """
+
+    idx: torch.Tensor
+    valid: torch.Tensor
+    diff: torch.Tensor
+    psi: torch.Tensor
+    weights: torch.Tensor
+    centroid: torch.Tensor
+    tangent: torch.Tensor
+    normal: torch.Tensor
+    eigenvalues: torch.Tensor
+    bandwidth: float
+
+
+def find_neighbors(points: torch.Tensor, k: int = DEFAULT_K, *, backend: str = "auto") -> Neighbors:
+    """The k nearest *other* points of every point (self excluded), for caching by the caller.
+
+    The result can be passed as ``neighbors=`` to :func:`repulsion_loss`,
+    :func:`projection_loss`, :func:`local_frames` or the modules, e.g. once per optimisation
+    cycle; the bandwidth mask is re-evaluated from the current positions on every call.
+    """
+    return knn(points, k, exclude_self=True, backend=backend)
+
+
+def _check_inputs(points, normals, occlusion):
+    if not isinstance(points, torch.Tensor) or points.dim() != 2 or points.shape[1] != 3:
+        shape = tuple(points.shape) if isinstance(points, torch.Tensor) else type(points).__name__
+        raise ValueError(f"points must be a (N, 3) tensor, got {shape}")
+    n = points.shape[0]
+    if not bool(torch.isfinite(points).all()):
+        raise ValueError("points contain NaN or inf coordinates")
+    if normals is not None and tuple(normals.shape) != (n, 3):
+        raise ValueError(f"normals must have shape ({n}, 3), got {tuple(normals.shape)}")
+    if occlusion is not None:
+        if tuple(occlusion.shape) != (n,):
+            raise ValueError(
+                f"occlusion counts must have shape ({n},), got {tuple(occlusion.shape)}"
+            )
+        if not bool(torch.isfinite(occlusion.float()).all()) or bool((occlusion < 0).any()):
+            raise ValueError("occlusion counts must be finite and >= 0")
+
+
+def _basis_from_normal(n: torch.Tensor) -> torch.Tensor:
+    """(M, 3) unit normals -> (M, 3, 3) frames with columns [t1, t2, n]."""
+    helper = torch.zeros_like(n)
+    use_x = n[:, 0].abs() < 0.9
+    helper[use_x, 0] = 1.0
+    helper[~use_x, 1] = 1.0
+    t1 = F.normalize(helper - (helper * n).sum(-1, keepdim=True) * n, dim=-1)
+    t2 = torch.cross(n, t1, dim=-1)
+    return torch.stack([t1, t2, n], dim=-1)
+
+
+def local_frames(
+    points: torch.Tensor,
+    normals: torch.Tensor | None = None,
+    occlusion: torch.Tensor | None = None,
+    *,
+    bandwidth: float,
+    k: int = DEFAULT_K,
+    sharpness_angle: float = DEFAULT_SHARPNESS,
+    covariance_weight: str = "squared",
+    neighbors: Neighbors | None = None,
+    backend: str = "auto",
+) -> LocalFrames:
+    """Weighted PCA of every point's neighbourhood (see module docstring).
+
+    Args:
+        points: (N, 3) positions (may require grad).
+        normals: (N, 3) normals or None; normalised internally, zero normals stay zero.
+        occlusion: (N,) occlusion counts ``o_k`` >= 0 or None (= 0).
+        bandwidth: ``D``.
+        k: neighbours per point (ignored if ``neighbors`` is given).
+        sharpness_angle: ``Theta`` in radians.
+        covariance_weight: ``"squared"`` (paper) or ``"linear"``.
+        neighbors: precomputed :func:`find_neighbors` result (self excluded), or None.
+        backend: kNN backend when searching.
+
+    Neighbourhoods with fewer than 3 valid neighbours have no well-defined plane; for those the
+    frame is built from the given normal ``n_i`` when it is non-zero (else the PCA result, which
+    is arbitrary but harmless: such rows carry little or no weight).
+    """
+    _check_inputs(points, normals, occlusion)
+    if not bandwidth > 0:
+        raise ValueError(f"bandwidth must be positive, got {bandwidth}")
+    n_pts = points.shape[0]
+    if neighbors is None:
+        neighbors = find_neighbors(points, k, backend=backend)
+    idx = neighbors.idx
+    if idx.shape[0] != n_pts:
+        raise ValueError(
+            f"neighbour list has {idx.shape[0]} rows but there are {n_pts} points; recompute it"
+        )
+    if idx.device != points.device:
+        idx = idx.to(points.device)
+
+    nb = gather_neighbors(points, idx)  # (N, K, 3), differentiable
+    diff = points.unsqueeze(1) - nb  # p_i - p_k
+    if covariance_weight not in ("squared", "linear"):
+        raise ValueError(
+            f"covariance_weight must be 'squared' or 'linear', got {covariance_weight!r}"
+        )
+    with torch.no_grad():
+        dist2 = (diff.detach() ** 2).sum(-1)
+        valid = (idx >= 0) & (dist2 <= bandwidth * bandwidth)
+        validf = valid.to(points.dtype)
+    # Masked neighbours contribute nothing (and no gradient); outside no_grad to keep the graph.
+    diff = diff * validf.unsqueeze(-1)
+    with torch.no_grad():
+        psi = torch.exp(-dist2 / (bandwidth * bandwidth)) * validf
+        w = psi.clone()
+        if normals is not None:
+            nrm = F.normalize(normals.detach(), dim=-1)
+            cos = (gather_neighbors(nrm, idx) * nrm.unsqueeze(1)).sum(-1)
+            denom = max(1e-5, 1.0 - math.cos(sharpness_angle))
+            w = w * torch.exp(-((1.0 - cos) ** 2) / denom)
+        if occlusion is not None:
+            occ = occlusion.detach().to(points.dtype)
+            w = w * (1.0 / (gather_neighbors(occ.unsqueeze(-1), idx)[..., 0] + 1.0))
+        wsum = w.sum(1, keepdim=True)
+        # Rows whose weights all vanish (no neighbour, or all masked) keep w = 0.
+        w = torch.where(
+            wsum > 0, w / wsum.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(w)
+        )
+
+        nb_d = nb.detach()
+        centroid = (w.unsqueeze(-1) * nb_d).sum(1)
+        centred = (nb_d - centroid.unsqueeze(1)) * validf.unsqueeze(-1)
+        cw = w * w if covariance_weight == "squared" else w
+        cov = torch.einsum("nk,nki,nkj->nij", cw, centred, centred)
+        # eigh in float64 (3x3 per point, cheap) for accurate eigenvectors of nearly planar or
+        # tiny neighbourhoods; back to the working dtype afterwards.
+        evals, evecs = torch.linalg.eigh(cov.double())
+        evals = evals.to(points.dtype)
+        evecs = evecs.to(points.dtype)
+        if normals is not None:
+            few = valid.sum(1) < 3
+            has_n = nrm.norm(dim=-1) > 0.5
+            fb = few & has_n
+            if bool(fb.any()):
+                evecs[fb] = _basis_from_normal(nrm[fb])[..., [2, 0, 1]]
+        normal_dir = evecs[..., 0]
+        tangent = evecs[..., 1:3]
+    return LocalFrames(
+        idx=idx,
+        valid=valid,
+        diff=diff,
+        psi=psi,
+        weights=w,
+        centroid=centroid,
+        tangent=tangent,
+        normal=normal_dir,
+        eigenvalues=evals,
+        bandwidth=float(bandwidth),
+    )
+
+
+def repulsion_loss(
+    points: torch.Tensor,
+    normals: torch.Tensor | None = None,
+    occlusion: torch.Tensor | None = None,
+    *,
+    bandwidth: float,
+    k: int = DEFAULT_K,
+    sharpness_angle: float = DEFAULT_SHARPNESS,
+    eps: float = REPULSION_EPS,
+    covariance_weight: str = "squared",
+    neighbors: Neighbors | None = None,
+    frames: LocalFrames | None = None,
+    backend: str = "auto",
+) -> torch.Tensor:
+    """Repulsion ``L_r = 1/N sum_i sum_k psi_ik / (d_ik^2 + eps)`` (scalar).
+
+    ``d_ik`` is ``p_i - p_k`` projected onto the tangent plane of ``i``'s weighted PCA.
+    ``frames`` (from :func:`local_frames` with the same bandwidth) skips the PCA.
+    """
+    if frames is None:
+        frames = local_frames(
+            points,
+            normals,
+            occlusion,
+            bandwidth=bandwidth,
+            k=k,
+            sharpness_angle=sharpness_angle,
+            covariance_weight=covariance_weight,
+            neighbors=neighbors,
+            backend=backend,
+        )
+    n = points.shape[0]
+    if n == 0:
+        return points.sum() * 0.0
+    t = torch.einsum("nkc,nct->nkt", frames.diff, frames.tangent)  # (N, K, 2)
+    d2 = (t * t).sum(-1)
+    return (frames.psi / (d2 + eps)).sum() / n
+
+
+def projection_loss(
+    points: torch.Tensor,
+    normals: torch.Tensor | None = None,
+    occlusion: torch.Tensor | None = None,
+    *,
+    bandwidth: float,
+    k: int = DEFAULT_K,
+    sharpness_angle: float = DEFAULT_SHARPNESS,
+    mode: str = "paper",
+    covariance_weight: str = "squared",
+    neighbors: Neighbors | None = None,
+    frames: LocalFrames | None = None,
+    backend: str = "auto",
+) -> torch.Tensor:
+    """Projection ``L_p = 1/N sum_i sum_k w_ik (V_n^T (p_i - p_k))^2`` (scalar).
+
+    ``mode="point_to_plane"`` gives ``1/N sum_i (V_n^T (p_i - c_i))^2`` instead (see module
+    docstring for how the two relate).
+    """
+    if mode not in ("paper", "point_to_plane"):
+        raise ValueError(f"projection mode must be 'paper' or 'point_to_plane', got {mode!r}")
+    if frames is None:
+        frames = local_frames(
+            points,
+            normals,
+            occlusion,
+            bandwidth=bandwidth,
+            k=k,
+            sharpness_angle=sharpness_angle,
+            covariance_weight=covariance_weight,
+            neighbors=neighbors,
+            backend=backend,
+        )
+    n = points.shape[0]
+    if n == 0:
+        return points.sum() * 0.0
+    if mode == "paper":
+        dn = (frames.diff * frames.normal.unsqueeze(1)).sum(-1)  # (N, K)
+        return (frames.weights * dn * dn).sum() / n
+    # sum_k w_ik (p_i - p_k) = p_i - c_i, differentiable w.r.t. p_i and the p_k
+    offset = (frames.weights.unsqueeze(-1) * frames.diff).sum(1)
+    s = (offset * frames.normal).sum(-1)
+    return (s * s).sum() / n
+
+
+# ----------------------------------------------------------------------------- modules
+
+
+class _SurfaceRegularizer(torch.nn.Module):
+    def __init__(self, config: RegularizerConfig | None = None, **overrides):
+        super().__init__()
+        cfg = config if config is not None else RegularizerConfig()
+        self.config = replace(cfg, **overrides) if overrides else cfg
+        self._bandwidth = self.config.bandwidth
+
+    @property
+    def bandwidth(self) -> float | None:
+        """The bandwidth ``D`` in use (None until fixed)."""
+        return self._bandwidth
+
+    def set_initial_shape(self, points: torch.Tensor) -> float:
+        """Fix ``D`` from the initial shape with the configured rule; returns it."""
+        self._bandwidth = bandwidth_for(points, self.config.bandwidth_rule)
+        logger.info(
+            "%s: bandwidth D=%.6g (rule %r, N=%d)",
+            type(self).__name__,
+            self._bandwidth,
+            self.config.bandwidth_rule,
+            points.shape[0],
+        )
+        return self._bandwidth
+
+    def _resolve_bandwidth(self, points: torch.Tensor) -> float:
+        if self._bandwidth is None:
+            self.set_initial_shape(points)
+        return self._bandwidth
+
+    def find_neighbors(self, points: torch.Tensor) -> Neighbors:
+        """Neighbour search with this term's k and backend (for caching by the caller)."""
+        return find_neighbors(points, self.config.k, backend=self.config.knn_backend)
+
+    def frames(self, points, normals=None, occlusion=None, neighbors=None) -> LocalFrames:
+        """The weighted-PCA frames this term uses (shareable between terms of equal D)."""
+        return local_frames(
+            points,
+            normals,
+            occlusion,
+            bandwidth=self._resolve_bandwidth(points),
+            k=self.config.k,
+            sharpness_angle=self.config.sharpness_angle,
+            covariance_weight=self.config.covariance_weight,
+            neighbors=neighbors,
+            backend=self.config.knn_backend,
+        )
+
+    def extra_repr(self) -> str:
+        return f"config={self.config}, bandwidth={self._bandwidth}"
+
+
+class RepulsionLoss(_SurfaceRegularizer):
+    """Module form of :func:`repulsion_loss`.
+
+    ``forward(points (N,3), normals (N,3)|None, occlusion (N,)|None, neighbors=None,
+    frames=None) -> scalar``. With ``config.bandwidth=None`` the bandwidth is fixed from the
+    first cloud passed (the initial shape) or by :meth:`set_initial_shape`.
+    """
+
+    def forward(self, points, normals=None, occlusion=None, neighbors=None, frames=None):
+        if frames is None:
+            frames = self.frames(points, normals, occlusion, neighbors)
+        return repulsion_loss(
+            points, bandwidth=frames.bandwidth, eps=self.config.eps, frames=frames
+        )
+
+
+class ProjectionLoss(_SurfaceRegularizer):
+    """Module form of :func:`projection_loss`.
+
+    For large deformations use ``ProjectionLoss(bandwidth_rule="large")`` (D = 0.1 sqrt(diag)).
+    """
+
+    def forward(self, points, normals=None, occlusion=None, neighbors=None, frames=None):
+        if frames is None:
+            frames = self.frames(points, normals, occlusion, neighbors)
+        return projection_loss(
+            points, bandwidth=frames.bandwidth, mode=self.config.projection_mode, frames=frames
+        )

@@ -1,0 +1,116 @@
+"""kNN / radius search: both backends match an exhaustive search."""
+
+import pytest
+import torch
+
+from dss.knn import gather_neighbors, knn, radius_neighbors
+
+BACKENDS = ["scipy", "torch"]
+
+
+def _brute(points, query, k):
+    d = ((query[:, None, :].double() - points[None, :, :].double()) ** 2).sum(-1).sqrt()
+    dist, idx = torch.sort(d, dim=1)
+    return dist[:, :k], idx[:, :k]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_knn_matches_brute_force(backend):
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(1500, 3, generator=g)
+    qry = torch.rand(300, 3, generator=g)
+    nb = knn(pts, 8, qry, backend=backend)
+    bd, bi = _brute(pts, qry, 8)
+    assert nb.idx.dtype == torch.int64 and nb.idx.shape == (300, 8)
+    assert nb.dist.dtype == torch.float32
+    torch.testing.assert_close(nb.dist.double(), bd, rtol=1e-5, atol=1e-6)
+    # random continuous coordinates: ties have probability ~0, so the index sets agree
+    assert torch.equal(nb.idx, bi)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_knn_self_query_and_exclude_self(backend):
+    g = torch.Generator().manual_seed(1)
+    pts = torch.randn(800, 3, generator=g)
+    nb = knn(pts, 6, backend=backend)
+    assert torch.equal(nb.idx[:, 0], torch.arange(800))  # itself first
+    ex = knn(pts, 5, exclude_self=True, backend=backend)
+    assert torch.equal(ex.idx, nb.idx[:, 1:])
+    assert not (ex.idx == torch.arange(800)[:, None]).any()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_knn_chunking_and_backends_agree(backend):
+    g = torch.Generator().manual_seed(2)
+    pts = torch.rand(3000, 3, generator=g)
+    a = knn(pts, 10, exclude_self=True, backend="torch", chunk_rows=97)
+    b = knn(pts, 10, exclude_self=True, backend=backend)
+    assert torch.equal(a.idx, b.idx)
+    torch.testing.assert_close(a.dist, b.dist, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_knn_pads_when_k_exceeds_n(backend):
+    pts = torch.rand(4, 3)
+    nb = knn(pts, 7, exclude_self=True, backend=backend)
+    assert nb.idx.shape == (4, 7)
+    assert (nb.idx[:, :3] >= 0).all() and (nb.idx[:, 3:] == -1).all()
+    assert torch.isinf(nb.dist[:, 3:]).all()
+    assert nb.mask.sum() == 12
+    # every other point appears exactly once
+    for i in range(4):
+        assert sorted(nb.idx[i, :3].tolist()) == [j for j in range(4) if j != i]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_exclude_self_with_duplicates(backend):
+    # 6 copies of one point plus a far point: point i must never be its own neighbour
+    pts = torch.cat([torch.zeros(6, 3), torch.ones(1, 3)])
+    nb = knn(pts, 3, exclude_self=True, backend=backend)
+    assert not (nb.idx == torch.arange(7)[:, None]).any()
+    assert (nb.dist[:6] == 0).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_radius_neighbors(backend):
+    g = torch.Generator().manual_seed(3)
+    pts = torch.rand(1000, 3, generator=g)
+    r = 0.08
+    nb = radius_neighbors(pts, r, 12, exclude_self=True, backend=backend)
+    bd, bi = _brute(pts, pts, 13)
+    bd, bi = bd[:, 1:], bi[:, 1:]
+    inside = bd <= r
+    assert torch.equal(nb.mask, inside)
+    assert torch.equal(nb.idx[inside], bi[inside])
+    assert torch.isinf(nb.dist[~inside]).all()
+
+
+def test_knn_no_grad_and_gather_is_differentiable():
+    pts = torch.rand(50, 3, requires_grad=True)
+    nb = knn(pts, 4, exclude_self=True)
+    assert not nb.dist.requires_grad
+    g = gather_neighbors(pts, nb.idx)
+    g.sum().backward()
+    # each gathered entry contributes 1 to its source's gradient
+    counts = torch.bincount(nb.idx.flatten(), minlength=50).float()
+    torch.testing.assert_close(pts.grad[:, 0], counts)
+
+
+def test_knn_bad_input():
+    with pytest.raises(ValueError, match="shape"):
+        knn(torch.rand(10), 3)
+    with pytest.raises(ValueError, match="k must"):
+        knn(torch.rand(10, 3), 0)
+    with pytest.raises(ValueError, match="backend"):
+        knn(torch.rand(10, 3), 2, backend="faiss")
+    with pytest.raises(ValueError, match="NaN"):
+        knn(torch.tensor([[0.0, 0, 0], [float("nan"), 0, 0]]), 1, backend="scipy")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_knn_on_gpu_stays_on_device():
+    pts = torch.rand(2000, 3, device="cuda")
+    nb = knn(pts, 5, exclude_self=True)
+    assert nb.idx.device.type == "cuda"
+    ref = knn(pts.cpu(), 5, exclude_self=True, backend="scipy")
+    assert torch.equal(nb.idx.cpu(), ref.idx)

@@ -1,0 +1,97 @@
+"""SMAPE and L1 image losses on hand-computed cases."""
+
+import pytest
+import torch
+
+from dss.losses import L1Loss, SmapeLoss, l1_loss, smape_loss
+
+
+def test_identical_images_give_zero():
+    img = torch.rand(3, 8, 9, 3)
+    assert smape_loss(img, img.clone()).item() == 0.0
+    assert l1_loss(img, img.clone()).item() == 0.0
+    # also for all-zero images (eps keeps 0/0 away)
+    z = torch.zeros(2, 4, 4, 3)
+    assert smape_loss(z, z).item() == 0.0
+
+
+def test_smape_hand_case():
+    pred = torch.tensor([1.0, 0.0, 2.0]).view(1, 1, 1, 3).expand(1, 1, 2, 3).clone()
+    target = torch.tensor([3.0, 1.0, 2.0]).view(1, 1, 1, 3).expand(1, 1, 2, 3).clone()
+    pred[0, 0, 1] = 0.5
+    target[0, 0, 1] = 0.5
+    eps = 1e-5
+    px0 = 2 / (4 + eps) + 1 / (1 + eps) + 0.0
+    expected = (px0 + 0.0) / 2  # 1/(HW) sum over pixels of sum over channels
+    assert smape_loss(pred, target).item() == pytest.approx(expected, rel=1e-6)
+    # channel mean variant
+    assert smape_loss(pred, target, channel_reduction="mean").item() == pytest.approx(
+        expected / 3, rel=1e-6
+    )
+
+
+def test_smape_bounded_by_channels():
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(4, 16, 16, 3, generator=g) * 10
+    b = -a  # worst case: opposite signs
+    v = smape_loss(a, b).item()
+    assert v <= 3.0 + 1e-6
+    assert v > 2.99  # |a-(-a)| = |a|+|-a| -> each term ~1
+    c = torch.randn(4, 16, 16, 3, generator=g)
+    assert 0 < smape_loss(a, c).item() <= 3.0
+
+
+def test_mean_over_views():
+    a = torch.rand(2, 5, 5, 3)
+    b = torch.rand(2, 5, 5, 3)
+    per_view = torch.stack([smape_loss(a[i : i + 1], b[i : i + 1]) for i in range(2)])
+    assert smape_loss(a, b).item() == pytest.approx(per_view.mean().item(), rel=1e-6)
+    per_view = torch.stack([l1_loss(a[i : i + 1], b[i : i + 1]) for i in range(2)])
+    assert l1_loss(a, b).item() == pytest.approx(per_view.mean().item(), rel=1e-6)
+
+
+def test_l1_hand_case():
+    a = torch.zeros(1, 2, 2, 2)
+    b = torch.zeros(1, 2, 2, 2)
+    b[0, 0, 0] = torch.tensor([1.0, -2.0])
+    assert l1_loss(a, b).item() == pytest.approx(3.0 / 4)
+    assert l1_loss(a, b, channel_reduction="mean").item() == pytest.approx(
+        torch.nn.functional.l1_loss(a, b).item()
+    )
+
+
+def test_mask_restricts_and_normalises_over_masked_pixels():
+    a = torch.rand(2, 4, 4, 3)
+    b = a.clone()
+    b[:, 0, 0] += 1.0  # error only at pixel (0,0)
+    mask = torch.zeros(2, 4, 4, dtype=torch.bool)
+    assert smape_loss(a, b, mask).item() == 0.0  # error pixels excluded, zero-mask -> 0
+    mask[:, 0, 0] = True
+    mask[:, 1, 1] = True
+    per_px = smape_loss(a, b, reduction="none")
+    expected = (per_px[:, 0, 0].sum() + per_px[:, 1, 1].sum()) / 4
+    assert smape_loss(a, b, mask).item() == pytest.approx(expected.item(), rel=1e-6)
+    # (V,H,W,1) and broadcast (H,W) masks are accepted
+    assert smape_loss(a, b, mask[..., None]).item() == pytest.approx(expected.item(), rel=1e-6)
+    assert smape_loss(a, b, mask[0]).item() == pytest.approx(expected.item(), rel=1e-6)
+    l1 = l1_loss(a, b, mask).item()
+    assert l1 == pytest.approx(3.0 * 2 / 4, rel=1e-5)
+
+
+def test_gradient_and_modules():
+    a = torch.rand(1, 3, 3, 3, requires_grad=True)
+    b = torch.rand(1, 3, 3, 3)
+    SmapeLoss()(a, b).backward()
+    assert torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
+    a.grad = None
+    L1Loss()(a, b, torch.ones(1, 3, 3)).backward()
+    assert torch.isfinite(a.grad).all()
+
+
+def test_bad_shapes():
+    with pytest.raises(ValueError, match="differ"):
+        smape_loss(torch.rand(1, 2, 2, 3), torch.rand(1, 2, 3, 3))
+    with pytest.raises(ValueError, match=r"\(V, H, W, C\)"):
+        l1_loss(torch.rand(2, 2, 3), torch.rand(2, 2, 3))
+    with pytest.raises(ValueError, match="broadcast"):
+        smape_loss(torch.rand(1, 2, 2, 3), torch.rand(1, 2, 2, 3), torch.ones(3, 3))

@@ -1,0 +1,110 @@
+import numpy as np
+import pytest
+import torch
+
+from dss.pointcloud import (
+    PointCloud,
+    PointCloudError,
+    add_gaussian_noise,
+    bbox_diagonal,
+    estimate_normals,
+    load_ply,
+    normalize_unit_diagonal,
+    save_ply,
+)
+
+from scenes import sphere_points
+
+
+def _write_ascii_ply(path, pts, normals=None):
+    """Binary little-endian PLY written by hand (so NaN and inf rows can be stored)."""
+    props = "property float x\nproperty float y\nproperty float z\n"
+    rows = np.asarray(pts, np.float32)
+    if normals is not None:
+        props += "property float nx\nproperty float ny\nproperty float nz\n"
+        rows = np.concatenate([rows, np.asarray(normals, np.float32)], 1)
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(rows)}\n{props}end_header\n"
+    path.write_bytes(header.encode() + rows.astype("<f4").tobytes())
+
+
+def test_roundtrip_with_normals_and_colors(tmp_path):
+    p, n = sphere_points(500)
+    c = torch.rand(500, 3)
+    save_ply(tmp_path / "a.ply", PointCloud(p, n, c))
+    back = load_ply(tmp_path / "a.ply")
+    assert torch.allclose(back.points, p, atol=1e-6)
+    assert torch.allclose(back.normals, n, atol=1e-5)
+    assert torch.allclose(back.colors, c, atol=1 / 255 + 1e-6)
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(PointCloudError, match="nope.ply: no such file"):
+        load_ply(tmp_path / "nope.ply")
+
+
+def test_malformed_file(tmp_path):
+    bad = tmp_path / "bad.ply"
+    bad.write_text("this is not a point cloud\n")
+    with pytest.raises(PointCloudError, match="bad.ply"):
+        load_ply(bad)
+
+
+def test_empty_cloud(tmp_path):
+    f = tmp_path / "empty.ply"
+    _write_ascii_ply(f, np.zeros((0, 3)))
+    with pytest.raises(PointCloudError, match="empty.ply.*no points"):
+        load_ply(f)
+    with pytest.raises(PointCloudError, match="empty"):
+        save_ply(tmp_path / "x.ply", PointCloud(torch.zeros(0, 3)))
+
+
+def test_nan_rows_dropped_or_refused(tmp_path, caplog):
+    p, n = sphere_points(100)
+    pts = p.numpy().copy()
+    pts[3, 1] = np.nan
+    pts[7, 0] = np.inf
+    f = tmp_path / "nan.ply"
+    _write_ascii_ply(f, pts, n.numpy())
+    with caplog.at_level("WARNING"):
+        c = load_ply(f)
+    assert len(c) == 98
+    assert "2 of 100 rows" in caplog.text and "nan.ply" in caplog.text
+    with pytest.raises(PointCloudError, match="nan.ply: 2 of 100 rows hold NaN/inf.*refusing"):
+        load_ply(f, nan_policy="raise")
+
+
+def test_missing_normals_are_computed_and_oriented(tmp_path):
+    p, n = sphere_points(2000)
+    f = tmp_path / "nonormals.ply"
+    _write_ascii_ply(f, p.numpy())
+    c = load_ply(f)
+    cos = (c.normals * n).sum(1)
+    assert (cos > 0.95).float().mean() > 0.99  # outward and accurate
+    c2 = load_ply(f, compute_normals=False)
+    assert c2.normals is None
+
+
+def test_estimate_normals_consistent_on_torus():
+    # A torus is not star-shaped around its centroid: orientation must come from propagation.
+    u, v = torch.meshgrid(torch.linspace(0, 6.283, 80)[:-1], torch.linspace(0, 6.283, 40)[:-1], indexing="ij")
+    R, r = 1.0, 0.35
+    pts = torch.stack([(R + r * torch.cos(v)) * torch.cos(u), (R + r * torch.cos(v)) * torch.sin(u), r * torch.sin(v)], -1).reshape(-1, 3)
+    true_n = torch.stack([torch.cos(v) * torch.cos(u), torch.cos(v) * torch.sin(u), torch.sin(v)], -1).reshape(-1, 3)
+    est = estimate_normals(pts, k=12)
+    agree = (est * true_n).sum(1)
+    assert (agree > 0.9).float().mean() > 0.97 or (agree < -0.9).float().mean() > 0.97
+
+
+def test_bbox_normalize_noise():
+    p = torch.tensor([[0.0, 0, 0], [3.0, 4.0, 0.0]])
+    assert bbox_diagonal(p) == pytest.approx(5.0)
+    q, c, s = normalize_unit_diagonal(p)
+    assert bbox_diagonal(q) == pytest.approx(1.0)
+    assert torch.allclose(c, torch.tensor([1.5, 2.0, 0.0]))
+    pts, _ = sphere_points(20000)
+    noisy = add_gaussian_noise(pts, 0.01, seed=3)
+    std = (noisy - pts).std().item()
+    assert std == pytest.approx(0.01 * bbox_diagonal(pts), rel=0.03)
+    assert torch.equal(noisy, add_gaussian_noise(pts, 0.01, seed=3))
+    with pytest.raises(ValueError, match=">= 0"):
+        add_gaussian_noise(pts, -0.1)

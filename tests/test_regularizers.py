@@ -1,0 +1,286 @@
+"""Weighted-PCA repulsion / projection regularisers (paper "Surface regularization")."""
+
+import math
+
+import pytest
+import torch
+
+from dss.knn import knn
+from dss.regularizers import (
+    ProjectionLoss,
+    RegularizerConfig,
+    RepulsionLoss,
+    bandwidth_for,
+    default_bandwidth,
+    find_neighbors,
+    large_deformation_bandwidth,
+    local_frames,
+    projection_loss,
+    repulsion_loss,
+)
+
+S = 0.05  # grid spacing
+
+
+def _grid(n, spacing=S):
+    ij = torch.stack(
+        torch.meshgrid(torch.arange(n) * spacing, torch.arange(n) * spacing, indexing="ij"), -1
+    ).reshape(-1, 2)
+    ij = ij - ij.mean(0)
+    return torch.cat([ij, torch.zeros(len(ij), 1)], 1)
+
+
+def _rotation(seed):
+    g = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=g))
+    return q
+
+
+def _nn_cv(points, rows):
+    d = knn(points.detach(), 1, exclude_self=True).dist[rows, 0]
+    return (d.std() / d.mean()).item()
+
+
+def _descend(loss_fn, p, steps, step_len):
+    """Normalised gradient descent: the fastest-moving point moves ``step_len`` per step."""
+    p = p.clone().requires_grad_(True)
+    for _ in range(steps):
+        (g,) = torch.autograd.grad(loss_fn(p), p)
+        assert torch.isfinite(g).all()
+        with torch.no_grad():
+            p -= step_len * g / g.norm(dim=1).max().clamp_min(1e-30)
+    return p.detach()
+
+
+def test_bandwidth_rules():
+    assert default_bandwidth(1.0, 10000) == pytest.approx(0.04)
+    assert large_deformation_bandwidth(4.0) == pytest.approx(0.2)
+    pts = torch.tensor([[0.0, 0, 0], [3.0, 4.0, 0.0]])  # diagonal 5
+    assert bandwidth_for(pts) == pytest.approx(4 * math.sqrt(5 / 2))
+    assert bandwidth_for(pts, "large") == pytest.approx(0.1 * math.sqrt(5))
+    with pytest.raises(ValueError, match="rule"):
+        bandwidth_for(pts, "huge")
+    with pytest.raises(ValueError, match="explicitly"):  # a single point has no size
+        bandwidth_for(pts[:1])
+
+
+@pytest.mark.parametrize("covariance_weight", ["squared", "linear"])
+def test_pca_normals_of_a_sphere_are_radial(covariance_weight):
+    g = torch.Generator().manual_seed(0)
+    p = torch.randn(3000, 3, generator=g)
+    p = p / p.norm(dim=1, keepdim=True)
+    fr = local_frames(p, p, None, bandwidth=bandwidth_for(p), covariance_weight=covariance_weight)
+    cos = (fr.normal * p).sum(-1).abs()
+    assert cos.min() > 0.97
+    # tangent basis orthonormal and orthogonal to the normal
+    frame = torch.cat([fr.tangent, fr.normal[..., None]], -1)
+    eye = torch.eye(3).expand_as(frame)
+    torch.testing.assert_close(frame.transpose(1, 2) @ frame, eye, atol=1e-5, rtol=0)
+    assert not fr.normal.requires_grad and not fr.weights.requires_grad
+
+
+def test_repulsion_makes_jittered_grid_uniform_and_keeps_points_on_plane():
+    n = 16
+    base = _grid(n)
+    g = torch.Generator().manual_seed(1)
+    jitter = torch.zeros_like(base)
+    jitter[:, :2] = 0.25 * S * torch.randn(len(base), 2, generator=g)
+    R = _rotation(2)  # a tilted plane, so "stays on the plane" is not trivially z == 0
+    p0 = (base + jitter) @ R.T
+    normals = torch.tensor([0.0, 0.0, 1.0]).expand_as(p0) @ R.T
+    D = 2.5 * S
+    # interior rows (by grid index): boundary points are pushed outwards by design
+    ij = torch.stack(torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij"), -1)
+    interior = ((ij >= 3) & (ij < n - 3)).all(-1).reshape(-1)
+
+    cv0 = _nn_cv(p0, interior)
+    p_with = _descend(lambda p: repulsion_loss(p, normals, bandwidth=D), p0, 40, 0.05 * S)
+    cv_with = _nn_cv(p_with, interior)
+    # "without repulsion" the positions do not change: cv stays cv0
+    assert cv0 > 0.2
+    assert cv_with < 0.4 * cv0, (cv0, cv_with)
+    # purely tangential forces: every point stays on the plane
+    off_plane = (p_with @ R)[:, 2].abs().max().item()
+    assert off_plane < 1e-5 * S, off_plane
+    # and the loss went down
+    assert repulsion_loss(p_with, normals, bandwidth=D) < repulsion_loss(p0, normals, bandwidth=D)
+
+
+def _plane_distance(p):
+    c = p - p.mean(0)
+    _, _, vh = torch.linalg.svd(c.double(), full_matrices=False)
+    return (c.double() @ vh[-1]).abs().mean().item()
+
+
+@pytest.mark.parametrize("mode", ["paper", "point_to_plane"])
+def test_projection_lowers_point_to_plane_distance_of_noisy_plane(mode):
+    base = _grid(15)
+    g = torch.Generator().manual_seed(3)
+    noisy = base.clone()
+    noisy[:, 2] = 0.2 * S * torch.randn(len(base), generator=g)
+    R = _rotation(4)
+    noisy = noisy @ R.T
+    normals = torch.tensor([0.0, 0.0, 1.0]).expand_as(noisy) @ R.T
+    d0 = _plane_distance(noisy)
+    out = _descend(
+        lambda p: projection_loss(p, normals, bandwidth=3 * S, mode=mode), noisy, 40, 0.02 * S
+    )
+    d1 = _plane_distance(out)
+    assert d1 < 0.5 * d0, (d0, d1)
+    # normal forces only: the in-plane layout hardly changes
+    inplane = ((out - noisy) @ R)[:, :2].abs().max().item()
+    assert inplane < 0.2 * S
+
+
+def test_paper_projection_splits_into_point_to_plane_plus_spread():
+    g = torch.Generator().manual_seed(5)
+    p = torch.rand(400, 3, generator=g) * torch.tensor([1.0, 1.0, 0.05])
+    D = 0.2
+    fr = local_frames(p, None, None, bandwidth=D)
+    paper = projection_loss(p, bandwidth=D, frames=fr)
+    p2p = projection_loss(p, bandwidth=D, frames=fr, mode="point_to_plane")
+    nb = p[fr.idx.clamp(min=0)]
+    spread = (fr.weights * (((nb - fr.centroid[:, None]) * fr.normal[:, None]).sum(-1) ** 2)).sum()
+    torch.testing.assert_close(paper, p2p + spread / len(p), rtol=1e-4, atol=1e-9)
+
+
+def test_visibility_weight_suppresses_occluded_outlier():
+    pts = _grid(15)
+    normals = torch.tensor([0.0, 0.0, 1.0]).expand_as(pts)
+    centre = int(pts.norm(dim=1).argmin())
+    outlier = torch.tensor([[S, 0.0, S]])  # inside the centre's neighbourhood, off the plane
+    P = torch.cat([pts, outlier])
+    Nrm = torch.cat([normals, torch.tensor([[0.0, 0.0, 1.0]])])  # same normal: theta keeps it
+
+    def tilt_deg(o):
+        occ = torch.zeros(len(P))
+        occ[-1] = o
+        fr = local_frames(P, Nrm, occ, bandwidth=3 * S)
+        assert (fr.idx[centre][fr.valid[centre]] == len(P) - 1).any()  # outlier is a neighbour
+        return math.degrees(math.acos(min(1.0, fr.normal[centre, 2].abs().item())))
+
+    visible, occluded = tilt_deg(0.0), tilt_deg(50.0)
+    assert visible > 2.0, visible
+    assert occluded < 0.05 * visible, (visible, occluded)
+
+
+def test_large_projection_bandwidth_pulls_far_outlier():
+    pts = _grid(12)
+    outlier = torch.tensor([[0.0, 0.0, 4 * S]])
+    P = torch.cat([pts, outlier])
+    small = 2.5 * S  # outlier has no neighbour within D: no force
+    large = 0.3
+    p = P.clone().requires_grad_(True)
+    ProjectionLoss(bandwidth=small)(p).backward()
+    assert p.grad[-1].norm() == 0
+    p.grad = None
+    ProjectionLoss(bandwidth=large)(p).backward()
+    g = p.grad[-1]
+    assert g[2] > 0 and g[2].abs() > 10 * g[:2].abs().max()  # descent moves it down to z=0
+
+
+@pytest.mark.parametrize(
+    "case", ["duplicates", "all_identical", "zero_normals", "n_below_k", "single", "collinear"]
+)
+def test_degenerate_inputs_give_finite_values_and_gradients(case):
+    g = torch.Generator().manual_seed(7)
+    normals = None
+    if case == "duplicates":
+        base = torch.rand(30, 3, generator=g)
+        pts = torch.cat([base, base[:10], base[:10]])
+        normals = torch.randn(len(pts), 3, generator=g)
+    elif case == "all_identical":
+        pts = torch.ones(20, 3)
+        normals = torch.tensor([0.0, 0.0, 1.0]).expand(20, 3).clone()
+    elif case == "zero_normals":
+        pts = torch.rand(40, 3, generator=g)
+        normals = torch.zeros(40, 3)
+    elif case == "n_below_k":
+        pts = torch.rand(5, 3, generator=g)
+        normals = torch.randn(5, 3, generator=g)
+    elif case == "single":
+        pts = torch.rand(1, 3, generator=g)
+    else:
+        pts = torch.linspace(0, 1, 25)[:, None] * torch.tensor([[1.0, 2.0, 3.0]])
+    p = pts.clone().requires_grad_(True)
+    occ = torch.arange(len(pts), dtype=torch.float32)
+    mods = (
+        RepulsionLoss(bandwidth=0.3),
+        ProjectionLoss(bandwidth=0.3),
+        ProjectionLoss(bandwidth=0.3, projection_mode="point_to_plane"),
+    )
+    for mod in mods:
+        loss = mod(p, normals, occ)
+        (grad,) = torch.autograd.grad(loss, p)
+        assert torch.isfinite(loss), (case, type(mod).__name__)
+        assert torch.isfinite(grad).all(), (case, type(mod).__name__)
+
+
+def test_empty_cloud():
+    p = torch.zeros(0, 3, requires_grad=True)
+    assert repulsion_loss(p, bandwidth=0.1).item() == 0.0
+    assert projection_loss(p, bandwidth=0.1).item() == 0.0
+
+
+def test_module_fixes_bandwidth_from_initial_shape_and_accepts_cached_neighbors():
+    g = torch.Generator().manual_seed(8)
+    p0 = torch.rand(500, 3, generator=g)
+    rep = RepulsionLoss(RegularizerConfig(k=8))
+    assert rep.bandwidth is None
+    l0 = rep(p0)
+    D = rep.bandwidth
+    assert D == pytest.approx(bandwidth_for(p0))
+    rep(p0 * 3.0)  # a later (bigger) cloud does not change D
+    assert rep.bandwidth == D
+    nb = rep.find_neighbors(p0)
+    torch.testing.assert_close(rep(p0, neighbors=nb), l0)
+    # stale neighbour list of the wrong size is refused
+    with pytest.raises(ValueError, match="recompute"):
+        rep(p0[:100], neighbors=nb)
+    # shared frames: repulsion and projection from one PCA
+    fr = local_frames(p0, None, None, bandwidth=D, neighbors=find_neighbors(p0, 8))
+    torch.testing.assert_close(rep(p0, frames=fr), l0)
+    assert torch.isfinite(ProjectionLoss(bandwidth=D)(p0, frames=fr))
+
+
+def test_bad_inputs_are_refused():
+    p = torch.rand(10, 3)
+    with pytest.raises(ValueError, match="occlusion"):
+        repulsion_loss(p, None, torch.zeros(9), bandwidth=0.1)
+    with pytest.raises(ValueError, match=">= 0"):
+        repulsion_loss(p, None, -torch.ones(10), bandwidth=0.1)
+    with pytest.raises(ValueError, match="normals"):
+        projection_loss(p, torch.zeros(10, 2), bandwidth=0.1)
+    with pytest.raises(ValueError, match="NaN"):
+        projection_loss(torch.full((10, 3), float("nan")), bandwidth=0.1)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        repulsion_loss(torch.rand(10, 2), bandwidth=0.1)
+    with pytest.raises(ValueError, match="bandwidth"):
+        RegularizerConfig(bandwidth=-1.0)
+    with pytest.raises(ValueError, match="projection_mode"):
+        RegularizerConfig(projection_mode="foo")
+
+
+def test_tiny_neighbourhood_uses_given_normal():
+    # two neighbours cannot define a plane: the frame falls back to the point's own normal
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0]])
+    n = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 1.0]]), dim=-1).expand(3, 3)
+    fr = local_frames(pts, n, None, bandwidth=0.1)
+    torch.testing.assert_close(fr.normal.abs(), n.abs(), atol=1e-6, rtol=0)
+    assert (fr.tangent.transpose(1, 2) @ n[..., None]).abs().max() < 1e-6
+
+
+def test_projection_gradient_treats_frame_and_weights_as_constants():
+    # dL/dp = 2/N [sum_k w_ik (d_ik.n_i) n_i  -  sum_{j: i in N(j)} w_ji (d_ji.n_j) n_j]
+    g = torch.Generator().manual_seed(9)
+    p = (torch.rand(200, 3, generator=g) * torch.tensor([1.0, 1.0, 0.1])).requires_grad_(True)
+    nrm = torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=-1)
+    occ = torch.randint(0, 4, (200,), generator=g).float()
+    fr = local_frames(p, nrm, occ, bandwidth=0.25, k=8)
+    projection_loss(p, bandwidth=0.25, frames=fr).backward()
+    dn = (fr.diff.detach() * fr.normal[:, None]).sum(-1)  # (N, K)
+    f = (2.0 / 200) * (fr.weights * dn)[..., None] * fr.normal[:, None]  # force on p_i per (i,k)
+    expected = f.sum(1)
+    idx = fr.idx.clamp(min=0).reshape(-1)
+    expected = expected.index_add(0, idx, -f.reshape(-1, 3))
+    torch.testing.assert_close(p.grad, expected, rtol=1e-4, atol=1e-7)

@@ -1,0 +1,203 @@
+"""The backward pass: visibility gradient (Eqs. gradcase, filteredG) and the smooth terms."""
+
+import pytest
+import torch
+
+from dss.render import RenderSettings, render
+from scenes import axis_camera, random_scene
+
+Z = 2.0
+FOCAL = 100.0
+
+
+def _chase_one_point(mode, sigma, shift_px=15, steps=120):
+    """Adam on a single point until it is within 1 px of the target; returns steps or None."""
+    cams = axis_camera(64, 64, FOCAL)
+    tgt_p = torch.tensor([[shift_px * Z / FOCAL, 0.0, Z]])
+    n = torch.tensor([[0.0, 0, -1]])
+    s = RenderSettings(sigma=sigma, gradient=mode, window=24, merge_threshold=0.05)
+    col = torch.ones(1, 3)
+    tgt = render(tgt_p, n, cams, s, shading="albedo", colors=col).images
+    p = torch.tensor([[0.0, 0.0, Z]], requires_grad=True)
+    opt = torch.optim.Adam([p], lr=0.01)
+    for it in range(steps):
+        opt.zero_grad()
+        loss = (render(p, n, cams, s, shading="albedo", colors=col).images - tgt).abs().sum()
+        loss.backward()
+        opt.step()
+        if (p.detach()[0, :2] - tgt_p[0, :2]).norm().item() * FOCAL / Z < 1.0:
+            return it + 1
+    return None
+
+
+def test_one_point_reaches_target_independent_of_sigma(cpp_backend):
+    dss = [_chase_one_point("dss", s) for s in (0.02, 0.05, 0.1)]
+    assert all(d is not None and d <= 60 for d in dss), dss
+    assert max(dss) <= 1.3 * min(dss), dss  # barely depends on sigma
+    rbf = [_chase_one_point("rbf", s) for s in (0.02, 0.05, 0.1)]
+    # The RBF gradient vanishes beyond a few sigma: the small splats never get there.
+    assert rbf[0] is None, rbf
+
+
+def _wall_and_hidden_point(hidden_z):
+    g = torch.linspace(-0.3, 0.3, 21)
+    yy, xx = torch.meshgrid(g, g, indexing="ij")
+    wall = torch.stack([xx.flatten(), yy.flatten(), torch.full((441,), Z)], 1)
+    pts = torch.cat([wall, torch.tensor([[0.01, 0.01, hidden_z]])])
+    nrm = torch.tensor([0.0, 0.0, -1.0]).expand(442, 3).clone()
+    col = torch.cat([torch.full((441, 3), 0.3), torch.tensor([[1.0, 0.0, 0.0]])])
+    return pts, nrm, col
+
+
+def test_hidden_point_comes_forward_case_b(cpp_backend):
+    cams = axis_camera(48, 48, FOCAL)
+    s = RenderSettings(sigma=0.03, merge_threshold=0.05, window=4)
+    tp, n, col = _wall_and_hidden_point(Z - 0.1)  # target: the red point in front of the wall
+    tgt = render(tp, n, cams, s, shading="albedo", colors=col).images
+    pts, n, col = _wall_and_hidden_point(Z + 0.5)
+    for backend in ("reference", cpp_backend):
+        p = pts.clone().requires_grad_()
+        loss = (render(p, n, cams, s, shading="albedo", colors=col, backend=backend).images - tgt).abs().sum()
+        loss.backward()
+        assert p.grad[441, 2] > 0, "descent must move the hidden point towards the camera (-z)"
+    p = pts.clone().requires_grad_()
+    opt = torch.optim.Adam([p], lr=0.02)
+    for _ in range(60):
+        opt.zero_grad()
+        out = render(p, n, cams, s, shading="albedo", colors=col)
+        (out.images - tgt).abs().sum().backward()
+        p.grad[:441] = 0  # only the hidden point moves
+        opt.step()
+    out = render(p.detach(), n, cams, s, shading="albedo", colors=col)
+    assert p[441, 2].item() < Z + 0.05
+    assert out.images[0, 24, 24, 0] > 0.6  # it shows
+
+
+def test_two_points_reach_two_targets(cpp_backend):
+    cams = axis_camera(64, 64, FOCAL)
+    px = Z / FOCAL
+    start = torch.tensor([[-10 * px, 0.0, Z], [10 * px, 0.0, Z]])
+    target = torch.tensor([[-8 * px, 12 * px, Z], [12 * px, -12 * px, Z]])
+    n = torch.tensor([[0.0, 0, -1]] * 2)
+    col = torch.ones(2, 3)
+    s = RenderSettings(sigma=0.03, merge_threshold=0.05, window=24)
+    tgt = render(target, n, cams, s, shading="albedo", colors=col).images
+    p = start.clone().requires_grad_()
+    opt = torch.optim.Adam([p], lr=0.01)
+    for _ in range(150):
+        opt.zero_grad()
+        (render(p, n, cams, s, shading="albedo", colors=col).images - tgt).abs().sum().backward()
+        opt.step()
+    d = torch.cdist(p.detach()[:, :2], target[:, :2]) / px  # pixels
+    assert d.diagonal().max() < 1.5 or d.flip(1).diagonal().max() < 1.5, d
+
+
+def test_gradcheck_smooth_part_double():
+    # Huge cutoff and merge threshold: every splat covers every pixel and is visible, so the
+    # image is a smooth function of positions, normals and colours (no visibility events).
+    cams = axis_camera(6, 6, 10.0)
+    cams = type(cams)(cams.R.double(), cams.t.double(), cams.focal.double(), cams.principal.double(), cams.image_size)
+    pts = torch.tensor([[0.05, 0.02, 2.0], [-0.1, 0.05, 2.2], [0.0, -0.1, 2.4]], dtype=torch.float64, requires_grad=True)
+    nrm = torch.tensor([[0.1, 0.0, -1.0], [0.0, 0.2, -1.0], [-0.1, -0.1, -1.0]], dtype=torch.float64, requires_grad=True)
+    col = torch.rand(3, 3, dtype=torch.float64, requires_grad=True)
+    s = RenderSettings(cutoff=200.0, merge_threshold=10.0, K=8, sigma=0.3, gradient="none")
+
+    def f(p, n, c):
+        return render(p, n, cams, s, shading="albedo", colors=c, backend="reference").images
+
+    assert torch.autograd.gradcheck(f, (pts, nrm, col), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+    def g(p, n):
+        return render(p, n, cams, s, shading="sun", backend="reference").images
+
+    assert torch.autograd.gradcheck(g, (pts, nrm), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("mode", ["dss", "rbf"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cpp_and_reference_gradients_agree(seed, mode, cpp_backend):
+    pts, nrm, cams, sigma, colors = random_scene(seed, n=300)
+    tgt_pts = pts + 0.05 * torch.randn(pts.shape, generator=torch.Generator().manual_seed(seed + 50))
+    s = RenderSettings(merge_threshold=0.05, window=5, window_stride=1 + seed % 2, gradient=mode)
+    tgt = render(tgt_pts, nrm, cams, s, shading="sun", sigma=sigma).images
+    grads = {}
+    for backend in ("reference", cpp_backend):
+        p = pts.clone().requires_grad_()
+        n = nrm.clone().requires_grad_()
+        img = render(p, n, cams, s, shading="sun", sigma=sigma, backend=backend).images
+        ((img - tgt).abs().sum()).backward()
+        grads[backend] = (p.grad, n.grad)
+    (gp_r, gn_r), (gp_c, gn_c) = grads["reference"], grads[cpp_backend]
+    assert gp_r.abs().max() > 0
+    assert torch.allclose(gp_r, gp_c, rtol=1e-3, atol=1e-4 * gp_r.abs().max().item())
+    assert torch.allclose(gn_r, gn_c, rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_step_along_gradient_does_not_increase_loss(seed, cpp_backend):
+    pts, nrm, cams, sigma, colors = random_scene(seed, n=300)
+    tgt_pts = pts + 0.05 * torch.randn(pts.shape, generator=torch.Generator().manual_seed(100 + seed))
+    s = RenderSettings(merge_threshold=0.05, window=6)
+    tgt = render(tgt_pts, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma).images
+    p = pts.clone().requires_grad_()
+    loss = (render(p, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma).images - tgt).abs().sum()
+    loss.backward()
+    for px in (0.25, 1.0):  # largest move: px pixels (focal 60 at distance 3: 1 px = 0.05)
+        step = p.grad / p.grad.abs().max() * px * 0.05
+        with torch.no_grad():
+            after = (render(pts - step, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma).images - tgt).abs().sum()
+        assert after <= loss.detach()
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpp"])
+def test_filter_drops_terms_that_cannot_help(backend, request):
+    # One white splat on black, window 0 (only the pixel under its centre, where it is visible).
+    # Loss = +I there: removing the splat (dI < 0) helps, the term is kept. Loss = -I: removing
+    # it cannot help, Eq. filteredG zeroes the term. The RBF gradient has no such filter.
+    if backend == "cpp":
+        request.getfixturevalue("cpp_backend")
+    cams = axis_camera(16, 16, FOCAL)
+    n = torch.tensor([[0.0, 0, -1]])
+    col = torch.ones(1, 3)
+    start = torch.tensor([[0.3 * Z / FOCAL, 0.2 * Z / FOCAL, Z]])  # off the pixel centre
+    grads = {}
+    for mode in ("dss", "rbf"):
+        for sign in (1.0, -1.0):
+            p = start.clone().requires_grad_()
+            s = RenderSettings(sigma=0.05, window=0, gradient=mode, merge_threshold=0.05)
+            img = render(p, n, cams, s, shading="albedo", colors=col, backend=backend).images
+            # only the visibility term: colours are constant, the splat shape is position-invariant
+            (sign * img[0, 8, 8].sum()).backward()
+            grads[mode, sign] = p.grad.clone()
+    assert grads["dss", 1.0].abs().max() > 0
+    assert grads["dss", -1.0].abs().max() == 0
+    assert grads["rbf", 1.0].abs().max() > 0 and grads["rbf", -1.0].abs().max() > 0
+
+
+def test_degenerate_input_gives_finite_gradients(cpp_backend):
+    cams = axis_camera(32, 32, 50.0)
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 1e-9], [0.0, 0.1, 2.0], [0.05, 0.05, 2.0], [0.0, 0.0, 2.0]])
+    nrm = torch.tensor([[0.0, 0, -1], [0.0, 0, -1], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0, -1]])
+    tgt = torch.rand(1, 32, 32, 3)
+    for backend in ("reference", cpp_backend):
+        for mode in ("dss", "rbf"):
+            p = pts.clone().requires_grad_()
+            n = nrm.clone().requires_grad_()
+            img = render(p, n, cams, RenderSettings(sigma=0.05, gradient=mode), backend=backend).images
+            (img - tgt).abs().sum().backward()
+            assert torch.isfinite(img).all()
+            assert torch.isfinite(p.grad).all() and torch.isfinite(n.grad).all()
+    # everything culled (all back-facing): empty image, zero gradients
+    p = pts[2:].clone().requires_grad_()
+    back = torch.tensor([[0.0, 0, 1.0]]).expand(3, 3).clone().requires_grad_()
+    img = render(p, back, cams, RenderSettings(sigma=0.05)).images
+    (img - tgt).abs().sum().backward()
+    assert not img.any() and torch.isfinite(p.grad).all() and p.grad.abs().max() == 0
+
+
+def test_colors_receive_gradients():
+    pts, nrm, cams, sigma, colors = random_scene(4, n=100)
+    c = colors.clone().requires_grad_()
+    img = render(pts, nrm, cams, RenderSettings(), shading="albedo", colors=c, sigma=sigma).images
+    img.sum().backward()
+    assert c.grad.abs().sum() > 0

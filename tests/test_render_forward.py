@@ -1,0 +1,169 @@
+"""Analytic checks of the forward pass (paper Eqs. rk, filter, rho, sumI)."""
+
+import math
+
+import pytest
+import torch
+
+from dss.rasterizer import reference as ref
+from dss.rasterizer.fragments import Fragments
+from dss.render import RenderSettings, render
+from scenes import axis_camera, random_scene, sphere_points
+
+BACKENDS = ["reference", "cpp"]
+
+
+def _one_splat(normal, sigma, backend, Z=2.0, C=2.0, cull=True, shading="mask"):
+    cams = axis_camera()
+    p = torch.tensor([[0.0, 0.0, Z]])
+    n = torch.tensor([normal], dtype=torch.float32)
+    s = RenderSettings(cutoff=C, sigma=sigma, backface_culling=cull, merge_threshold=0.01)
+    return render(p, n, cams, s, shading=shading, backend=backend), cams
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_facing_splat_is_the_predicted_circle(backend, request):
+    if backend == "cpp":
+        request.getfixturevalue("cpp_backend")
+    sigma, Z, f, C = 0.2, 2.0, 100.0, 2.0
+    out, _ = _one_splat([0.0, 0.0, -1.0], sigma, backend)
+    s2 = sigma**2 * (f / Z) ** 2 + 1.0  # J V J^T + I, isotropic here
+    r = math.sqrt(2 * C * s2)
+    area = out.mask.sum().item()
+    assert area == pytest.approx(math.pi * r * r, rel=0.01)
+    # peak weight |J| / (2 pi sqrt(det Sigma)) times the Gaussian at the nearest pixel centre
+    rho = out.fragments.rho[0, 64, 64, 0].item()
+    d2 = 0.5**2 + 0.5**2
+    expect = (f / Z) ** 2 / (2 * math.pi * s2) * math.exp(-0.5 * d2 / s2)
+    assert rho == pytest.approx(expect, rel=1e-5)
+
+
+@pytest.mark.parametrize("theta_deg", [0.0, 45.0, 70.0])
+def test_tilted_normal_shrinks_minor_axis_by_cos(theta_deg):
+    sigma, Z, f, C = 0.25, 2.0, 100.0, 2.0
+    th = math.radians(theta_deg)
+    out, _ = _one_splat([math.sin(th), 0.0, -math.cos(th)], sigma, "reference")
+    m = out.mask[0]
+    width = m.any(0).sum().item()  # columns covered: extent along x
+    height = m.any(1).sum().item()
+    jvj_x = sigma**2 * (f / Z) ** 2 * math.cos(th) ** 2
+    jvj_y = sigma**2 * (f / Z) ** 2
+    rx, ry = math.sqrt(2 * C * (jvj_x + 1)), math.sqrt(2 * C * (jvj_y + 1))
+    assert abs(width - 2 * rx) <= 2.0
+    assert abs(height - 2 * ry) <= 2.0
+    assert m.sum().item() == pytest.approx(math.pi * rx * ry, rel=0.02)
+    if theta_deg > 0:  # the object-space part of the minor axis scales by cos(theta)
+        assert (rx**2 / (2 * C) - 1) / (ry**2 / (2 * C) - 1) == pytest.approx(math.cos(th) ** 2, rel=1e-6)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sphere_silhouette_radius(backend, request):
+    if backend == "cpp":
+        request.getfixturevalue("cpp_backend")
+    from dss.cameras import look_at
+
+    rad, dist, f = 0.5, 3.0, 300.0
+    p, n = sphere_points(20000, rad)
+    cams = look_at(torch.tensor([[0.0, 0.0, dist]]), (0, 0, 0), focal=f, image_size=(128, 128))
+    analytic = f * math.tan(math.asin(rad / dist))
+    # With a narrow low-pass filter the silhouette is the analytic one.
+    out = render(p, n, cams, RenderSettings(filter_variance=0.01), shading="mask", backend=backend)
+    assert abs(math.sqrt(out.mask.sum().item() / math.pi) - analytic) <= 1.0
+    # The paper's filter (variance 1 px^2) widens edge-on rim splats by its cutoff radius
+    # sqrt(2 C) px, and by nothing more.
+    s = RenderSettings()
+    out = render(p, n, cams, s, shading="mask", backend=backend)
+    widened = analytic + math.sqrt(2 * s.cutoff * s.filter_variance)
+    assert abs(math.sqrt(out.mask.sum().item() / math.pi) - widened) <= 1.0
+    assert out.mask[0, 64, 64] and not out.mask[0, 5, 5]
+
+
+def _two_splats(dz, merge, backend="reference"):
+    cams = axis_camera(32, 32)
+    p = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.0 + dz]])
+    n = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    col = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    s = RenderSettings(sigma=0.05, merge_threshold=merge)
+    return render(p, n, cams, s, shading="albedo", colors=col, backend=backend).images[0, 16, 16]
+
+
+def test_front_splat_hides_the_one_behind():
+    px = _two_splats(0.5, merge=0.1)
+    assert torch.allclose(px, torch.tensor([1.0, 0.0, 0.0]))
+
+
+def test_merge_threshold_blends_within_T_only():
+    within = _two_splats(0.05, merge=0.1)
+    beyond = _two_splats(0.15, merge=0.1)
+    assert within[0] > 0.05 and within[1] > 0.05  # blended
+    assert torch.allclose(within.sum(), torch.tensor(1.0), atol=1e-6)  # normalised
+    assert torch.allclose(beyond, torch.tensor([1.0, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_back_faces_are_culled(backend, request):
+    if backend == "cpp":
+        request.getfixturevalue("cpp_backend")
+    out, _ = _one_splat([0.0, 0.0, 1.0], 0.1, backend)
+    assert not out.mask.any()
+    out, _ = _one_splat([0.0, 0.0, 1.0], 0.1, backend, cull=False)
+    assert out.mask.any()
+
+
+def test_normalised_sum_is_invariant_to_weight_scale():
+    pts, nrm, cams, sigma, colors = random_scene(1)
+    out = render(pts, nrm, cams, RenderSettings(), shading="albedo", colors=colors, sigma=sigma, backend="reference")
+    f = out.fragments
+    scaled = Fragments(f.idx, f.depth, f.rho * 37.5, f.merge_threshold)
+    a, _ = ref.blend(f, out.attributes, 0.0)
+    b, _ = ref.blend(scaled, out.attributes, 0.0)
+    assert torch.allclose(a, b, atol=1e-6)
+    assert torch.allclose(a, out.images, atol=1e-6)
+
+
+def test_normal_render_returns_the_normals():
+    cams = axis_camera(48, 48)
+    g = torch.linspace(-0.3, 0.3, 25)
+    yy, xx = torch.meshgrid(g, g, indexing="ij")
+    p = torch.stack([xx.flatten(), yy.flatten(), torch.full((625,), 2.0)], 1)
+    nn = torch.tensor([0.3, -0.2, -0.93])
+    nn = nn / nn.norm()
+    out = render(p, nn.expand(625, 3).clone(), cams, RenderSettings(sigma=0.02), shading="normals", backend="reference")
+    assert out.mask.sum() > 200
+    assert torch.allclose(out.images[0][out.mask[0]], nn.expand(int(out.mask.sum()), 3), atol=1e-6)
+
+
+def test_depth_render_is_inverse_depth():
+    cams = axis_camera(32, 32)
+    p = torch.tensor([[0.0, 0.0, 2.0]])
+    out = render(p, torch.tensor([[0.0, 0, -1]]), cams, RenderSettings(sigma=0.05), shading="depth", backend="reference")
+    assert out.images[0, 16, 16, 0].item() == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("K", [1, 5, 8])
+def test_backends_agree_on_random_scenes(seed, K, cpp_backend):
+    pts, nrm, cams, sigma, colors = random_scene(seed, n=400)
+    s = RenderSettings(K=K, merge_threshold=0.05)
+    a = render(pts, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma, backend="reference")
+    b = render(pts, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma, backend=cpp_backend)
+    assert torch.equal(a.fragments.idx, b.fragments.idx)
+    assert torch.equal(a.fragments.depth, b.fragments.depth)
+    assert torch.allclose(a.fragments.rho, b.fragments.rho, rtol=1e-5, atol=1e-7)
+    assert torch.allclose(a.images, b.images, atol=1e-5)
+    assert torch.equal(a.mask, b.mask)
+    assert a.mask.float().mean() > 0.05
+
+
+def test_bad_render_input_messages():
+    cams = axis_camera(16, 16)
+    with pytest.raises(ValueError, match="empty point cloud"):
+        render(torch.zeros(0, 3), torch.zeros(0, 3), cams)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        render(torch.tensor([[0.0, 0, float("nan")]]), torch.tensor([[0.0, 0, -1]]), cams)
+    with pytest.raises(ValueError, match="normals must be"):
+        render(torch.zeros(3, 3), torch.zeros(2, 3), cams)
+    with pytest.raises(ValueError, match="unknown backend"):
+        render(torch.zeros(3, 3), torch.zeros(3, 3), cams, backend="gpu-magic")
+    with pytest.raises(ValueError, match="gradient must be"):
+        RenderSettings(gradient="soft")
