@@ -162,8 +162,23 @@ def _blend_differentiable(frags: Fragments, splats: Splats, attributes: torch.Te
     return img.view(V, H, W, C), mask.view(V, H, W)
 
 
+def _visibility_grad(o: dict, packed, attrs, idx, depth, rho, images, grad, R, t, focal, principal, background):
+    """Visibility term of dL/dp (N, 3) with the chosen backend."""
+    if o["backend"] == "cpp":
+        return _ext.load_cpu().visibility_backward(
+            packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
+            o["window"], o["stride"], o["cutoff"], o["merge"], o["eps"], 0 if o["mode"] == "dss" else 1)
+    frags = Fragments(idx, depth, rho, o["merge"])
+    cams = Cameras(R, t, focal, principal, o["image_size"])
+    return visibility_grad_reference(packed, attrs, frags, images, grad, cams, background,
+                                     o["window"], o["stride"], o["cutoff"], o["eps"], o["mode"])
+
+
 class _VisibilityGradient(torch.autograd.Function):
-    """Identity on the images; in backward adds the visibility term of Eq. gradP to the points."""
+    """Identity on the images; in backward adds the visibility term of Eq. gradP to the points.
+
+    Used with the reference backend, whose smooth terms come from torch autograd.
+    """
 
     @staticmethod
     def forward(ctx, images, points, packed, attrs, frags_t, cam_t, background, opts):
@@ -174,21 +189,40 @@ class _VisibilityGradient(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         packed, attrs, idx, depth, rho, R, t, focal, principal, background, images = ctx.saved_tensors
-        o = ctx.opts
         grad_points = None
         if ctx.needs_input_grad[1]:
-            grad = grad.contiguous()
-            if o["backend"] == "cpp":
-                grad_points = _ext.load_cpu().visibility_backward(
-                    packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
-                    o["window"], o["stride"], o["cutoff"], o["merge"], o["eps"], 0 if o["mode"] == "dss" else 1)
-            else:
-                frags = Fragments(idx, depth, rho, o["merge"])
-                cams = Cameras(R, t, focal, principal, o["image_size"])
-                grad_points = visibility_grad_reference(packed, attrs, frags, images, grad, cams, background,
-                                                        o["window"], o["stride"], o["cutoff"], o["eps"], o["mode"])
-            grad_points = grad_points.to(grad.dtype)
+            grad_points = _visibility_grad(ctx.opts, packed, attrs, idx, depth, rho, images, grad.contiguous(),
+                                           R, t, focal, principal, background).to(grad.dtype)
         return grad, grad_points, None, None, None, None, None, None
+
+
+class _CppBlend(torch.autograd.Function):
+    """Eq. sumI with the C++ kernels in both directions.
+
+    forward: the image the rasteriser already blended. backward: the smooth terms (through
+    rho_bar into the packed splat parameters, and through w_k into the attributes) from
+    ``blend_backward``, plus the visibility term for the points from ``visibility_backward``
+    (when ``opts["mode"]`` is not "none"). Autograd then carries dL/dpacked and dL/dattrs back
+    through :func:`project_splats` and the shader in torch.
+    """
+
+    @staticmethod
+    def forward(ctx, packed, attrs, points, images, frags_t, cam_t, background, opts):
+        ctx.save_for_backward(packed.detach(), attrs.detach(), *frags_t, *cam_t, background, images)
+        ctx.opts = opts
+        return images.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        packed, attrs, idx, depth, rho, R, t, focal, principal, background, images = ctx.saved_tensors
+        o = ctx.opts
+        grad = grad.contiguous().float()
+        g_packed = g_attrs = g_points = None
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            g_packed, g_attrs = _ext.load_cpu().blend_backward(packed, attrs, idx, depth, rho, images, grad, o["merge"])
+        if ctx.needs_input_grad[2] and o["mode"] != "none":
+            g_points = _visibility_grad(o, packed, attrs, idx, depth, rho, images, grad, R, t, focal, principal, background)
+        return g_packed, g_attrs, g_points, None, None, None, None, None
 
 
 def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras):
@@ -243,15 +277,19 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
 
     needs_grad = torch.is_grad_enabled() and (splats.packed.requires_grad or attrs.requires_grad)
     frags, images, mask = rasterize(splats, cameras.image_size, settings.K, settings.cutoff, merge, backend,
-                                    attributes=None if needs_grad else attrs, background=bg)
+                                    attributes=attrs, background=bg)
     if needs_grad:
-        images, mask = _blend_differentiable(frags, splats, attrs, bg)
-        if settings.gradient != "none" and points.requires_grad:
-            opts = dict(backend=backend, window=int(settings.window), stride=int(settings.window_stride),
-                        cutoff=float(settings.cutoff), merge=float(merge), eps=float(settings.epsilon),
-                        mode=settings.gradient, image_size=cameras.image_size)
-            images = _VisibilityGradient.apply(
-                images, points, splats.packed.detach().contiguous(), attrs.detach().contiguous(),
-                (frags.idx, frags.depth, frags.rho), (cameras.R, cameras.t, cameras.focal, cameras.principal),
-                bg, opts)
+        opts = dict(backend=backend, window=int(settings.window), stride=int(settings.window_stride),
+                    cutoff=float(settings.cutoff), merge=float(merge), eps=float(settings.epsilon),
+                    mode=settings.gradient, image_size=cameras.image_size)
+        frags_t = (frags.idx, frags.depth, frags.rho)
+        cam_t = (cameras.R, cameras.t, cameras.focal, cameras.principal)
+        vis_points = points if (settings.gradient != "none" and points.requires_grad) else points.detach()
+        if backend == "cpp":
+            images = _CppBlend.apply(splats.packed, attrs, vis_points, images.float(), frags_t, cam_t, bg, opts)
+        else:
+            images, mask = _blend_differentiable(frags, splats, attrs, bg)
+            if vis_points.requires_grad:
+                images = _VisibilityGradient.apply(images, vis_points, splats.packed.detach().contiguous(),
+                                                   attrs.detach().contiguous(), frags_t, cam_t, bg, opts)
     return RenderOutput(images, mask, frags, splats, attrs, sigma_t)

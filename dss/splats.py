@@ -108,7 +108,9 @@ def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
     S11 = s2 * A11 + filter_variance
     S12 = s2 * A12
     S22 = s2 * A22 + filter_variance
-    det_S = S11 * S22 - S12 * S12  # >= filter_variance^2 since A is PSD
+    # det(s2 A + f I) = s2^2 det A + s2 f tr A + f^2: a sum of non-negative terms, free of the
+    # cancellation that S11 S22 - S12^2 suffers in float32 for splats close to the camera.
+    det_S = s2 * s2 * det_A + s2 * filter_variance * (A11 + A22) + filter_variance * filter_variance
     conic_a = S22 / det_S
     conic_b2 = -2.0 * S12 / det_S
     conic_c = S11 / det_S

@@ -73,8 +73,10 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   TORCH_CHECK(packed.dim() == 3 && packed.size(2) == kFields, "packed splats must be (V,N,10)");
   packed = packed.contiguous().to(torch::kFloat32);
   const int64_t V = packed.size(0), N = packed.size(1);
+  TORCH_CHECK(K >= 1 && K <= 8, "K must be in [1, 8]");
   const bool do_blend = attrs.numel() > 0;
   const int64_t C = do_blend ? attrs.size(2) : 0;
+  TORCH_CHECK(C <= 16, "at most 16 channels");
   if (do_blend) {
     TORCH_CHECK(attrs.size(0) == V && attrs.size(1) == N, "attrs must be (V,N,C)");
     attrs = attrs.contiguous().to(torch::kFloat32);
@@ -136,7 +138,6 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     int32_t li[kTile * kTile * 8];
     float ld[kTile * kTile * 8], lr[kTile * kTile * 8];
     int cnt[kTile * kTile];
-    TORCH_CHECK(K <= 8, "K must be <= 8");
     std::fill(cnt, cnt + kTile * kTile, 0);
     const auto& off = offsets[v];
     for (int64_t e = off[t]; e < off[t + 1]; ++e) {
@@ -362,7 +363,92 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   return out;
 }
 
+// ---------------------------------------------------------------------------------------------
+// Backward of Eq. sumI for the smooth terms (Eqs. gradN, gradP without the visibility term):
+// I = sum_f rho_f w_f / sum_f rho_f over the visible cached fragments, rho_f = norm exp(-q/2),
+// q = a dx^2 + b2 dx dy + c dy^2 with d = pixel centre - (u, v). Returns dL/dpacked (V,N,10)
+// (u, v, conic a, b2, c, norm; zero for the other fields) and dL/dattrs (V,N,C). Parallel over
+// points: every point owns its accumulators, so there is no race and the sum order is fixed.
+std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
+                                          torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
+                                          torch::Tensor grad, double merge_d) {
+  packed = packed.contiguous().to(torch::kFloat32);
+  attrs = attrs.contiguous().to(torch::kFloat32);
+  idx = idx.contiguous();
+  depth = depth.contiguous();
+  rho = rho.contiguous();
+  images = images.contiguous().to(torch::kFloat32);
+  grad = grad.contiguous().to(torch::kFloat32);
+  const int64_t V = packed.size(0), N = packed.size(1), H = idx.size(1), W = idx.size(2), K = idx.size(3);
+  const int64_t C = attrs.size(2);
+  TORCH_CHECK(C <= 16, "at most 16 channels");
+  const float merge = (float)merge_d;
+  auto gpk = torch::zeros({V, N, kFields}, torch::TensorOptions().dtype(torch::kFloat32));
+  auto gat = torch::zeros({V, N, C}, torch::TensorOptions().dtype(torch::kFloat32));
+  const float* P = packed.data_ptr<float>();
+  const float* A = attrs.data_ptr<float>();
+  const int32_t* I = idx.data_ptr<int32_t>();
+  const float* D = depth.data_ptr<float>();
+  const float* Rh = rho.data_ptr<float>();
+  const float* IMG = images.data_ptr<float>();
+  const float* GR = grad.data_ptr<float>();
+  float* GP = gpk.data_ptr<float>();
+  float* GA = gat.data_ptr<float>();
+  dynamic_for(N, 16, [&](int64_t k) {
+    for (int64_t v = 0; v < V; ++v) {
+      const float* s = P + (v * N + k) * kFields;
+      if (!(s[9] > 0.f)) continue;
+      const Box b = splat_box(s, (int)H, (int)W);
+      const float* wk = A + (v * N + k) * C;
+      double du = 0, dv = 0, da = 0, db = 0, dc = 0, dn = 0;
+      double ga[16] = {0};
+      for (int i = b.i0; i <= b.i1; ++i) {
+        const float py = (float)i + 0.5f;
+        for (int j = b.j0; j <= b.j1; ++j) {
+          const int64_t g = (v * H + i) * W + j;
+          const int32_t* pi = I + g * K;
+          const float* pd = D + g * K;
+          const float* pr = Rh + g * K;
+          if (pi[0] < 0) continue;
+          const float lim = pd[0] + merge;
+          int ek = -1;
+          float den = 0.f;
+          for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+            den += pr[e];
+            if (pi[e] == (int32_t)k) ek = e;
+          }
+          if (ek < 0 || !(den > 0.f)) continue;
+          const float* gp = GR + g * C;
+          const float* ip = IMG + g * C;
+          const float rf = pr[ek];
+          double drho = 0;
+          for (int64_t c = 0; c < C; ++c) {
+            drho += (double)gp[c] * (wk[c] - ip[c]) / den;
+            ga[c] += (double)gp[c] * rf / den;
+          }
+          const float dx = ((float)j + 0.5f) - s[0], dy = py - s[1];
+          const float q = quad(s, dx, dy);
+          const double e = std::exp(-0.5 * (double)q);
+          dn += drho * e;
+          const double dq = -0.5 * drho * (double)s[5] * e;
+          da += dq * dx * dx;
+          db += dq * dx * dy;
+          dc += dq * dy * dy;
+          du += -dq * (2.0 * s[2] * dx + s[3] * dy);
+          dv += -dq * (s[3] * dx + 2.0 * s[4] * dy);
+        }
+      }
+      float* o = GP + (v * N + k) * kFields;
+      o[0] = (float)du; o[1] = (float)dv; o[2] = (float)da; o[3] = (float)db; o[4] = (float)dc; o[5] = (float)dn;
+      float* oa = GA + (v * N + k) * C;
+      for (int64_t c = 0; c < C; ++c) oa[c] = (float)ga[c];
+    }
+  });
+  return {gpk, gat};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
+  m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CPU)");
 }

@@ -398,38 +398,43 @@ inline int tiles_x(int W) { return (W + kTile - 1) / kTile; }
 inline int tiles_y(int H) { return (H + kTile - 1) / kTile; }
 
 }  // namespace
+}  // namespace dss_cuda
 
-cudaError_t launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
-                             cudaStream_t stream) {
+// Launchers: qualified definitions, so a signature that drifts from dss_cuda.h fails to compile.
+
+cudaError_t dss_cuda::launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
+                                       cudaStream_t stream) {
   const int TX = tiles_x(W), T = TX * tiles_y(H);
   if (V * N == 0 || T == 0) return cudaSuccess;
-  DSS_LAUNCH(bin_count_kernel, blocks_for(V * N, kThreads1D), kThreads1D, stream)(packed, V, N, H, W, TX, T, counts);
+  const unsigned int blocks = blocks_for(V * N, kThreads1D);
+  DSS_LAUNCH(bin_count_kernel, blocks, kThreads1D, stream)(packed, V, N, H, W, TX, T, counts);
   return cudaGetLastError();
 }
 
-cudaError_t launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor,
-                            int32_t* list, cudaStream_t stream) {
+cudaError_t dss_cuda::launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor,
+                                      int32_t* list, cudaStream_t stream) {
   const int TX = tiles_x(W), T = TX * tiles_y(H);
   if (V * N == 0 || T == 0) return cudaSuccess;
-  DSS_LAUNCH(bin_fill_kernel, blocks_for(V * N, kThreads1D), kThreads1D, stream)(packed, V, N, H, W, TX, T, cursor,
-                                                                               list);
+  const unsigned int blocks = blocks_for(V * N, kThreads1D);
+  DSS_LAUNCH(bin_fill_kernel, blocks, kThreads1D, stream)(packed, V, N, H, W, TX, T, cursor, list);
   return cudaGetLastError();
 }
 
-cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W, int K,
-                                   const int64_t* bin_start, const int64_t* bin_end, const int32_t* list,
-                                   float cutoff, float merge, const float* attrs, int C, const float* background,
-                                   int32_t* idx, float* depth, float* rho, float* images, bool* mask,
-                                   cudaStream_t stream) {
+cudaError_t dss_cuda::launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W, int K,
+                                             const int64_t* bin_start, const int64_t* bin_end,
+                                             const int32_t* list, float cutoff, float merge, const float* attrs,
+                                             int C, const float* background, int32_t* idx, float* depth,
+                                             float* rho, float* images, bool* mask, cudaStream_t stream) {
   const int TX = tiles_x(W), T = TX * tiles_y(H);
   if (V == 0 || T == 0) return cudaSuccess;
   if (K < 1 || K > kMaxK || C < 0 || C > kMaxC) return cudaErrorInvalidValue;
   const dim3 grid((unsigned int)(V * T)), block(kTile, kTile);
-#define DSS_TILES(KK)                                                                                         \
-  case KK:                                                                                                    \
-    DSS_LAUNCH(rasterize_tiles_kernel<KK>, grid, block, stream)(packed, N, H, W, TX, T, bin_start, bin_end,    \
-                                                                list, cutoff, merge, attrs, C, background, idx, \
-                                                                depth, rho, images, mask);                      \
+#define DSS_TILES(KK)                                                                                 \
+  case KK:                                                                                            \
+    DSS_LAUNCH(rasterize_tiles_kernel<KK>, grid, block, stream)(packed, N, H, W, TX, T, bin_start,     \
+                                                                bin_end, list, cutoff, merge, attrs, C, \
+                                                                background, idx, depth, rho, images,    \
+                                                                mask);                                  \
     break;
   switch (K) {
     DSS_TILES(1)
@@ -445,30 +450,31 @@ cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, in
   return cudaGetLastError();
 }
 
-cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
-                              const float* rho, const float* images, const float* grad, const float* R,
-                              const float* focal, const float* principal, const float* background, int64_t V,
-                              int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
-                              float merge, float eps, int mode, double* partial, cudaStream_t stream) {
+cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs, const int32_t* idx,
+                                        const float* depth, const float* rho, const float* images,
+                                        const float* grad, const float* R, const float* focal,
+                                        const float* principal, const float* background, int64_t V, int64_t N,
+                                        int H, int W, int K, int C, int window, int stride, float cutoff,
+                                        float merge, float eps, int mode, double* partial, cudaStream_t stream) {
   if (V * N == 0) return cudaSuccess;
   if (K < 1 || K > kMaxK || C < 1 || C > kMaxC || stride < 1 || window < 0) return cudaErrorInvalidValue;
   const unsigned int blocks = blocks_for(V * N, 128);
+  // Channel arrays sized at compile time so they stay in registers for the usual C <= 4.
   if (C <= 4)
     DSS_LAUNCH(visibility_kernel<4>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R, focal,
-                                                     principal, background, V, N, H, W, K, C, window, stride,
-                                                     cutoff, merge, eps, mode, partial);
+                                                          principal, background, V, N, H, W, K, C, window,
+                                                          stride, cutoff, merge, eps, mode, partial);
   else
-    DSS_LAUNCH(visibility_kernel<kMaxC>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R, focal,
-                                                         principal, background, V, N, H, W, K, C, window, stride,
-                                                         cutoff, merge, eps, mode, partial);
+    DSS_LAUNCH(visibility_kernel<kMaxC>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R,
+                                                              focal, principal, background, V, N, H, W, K, C,
+                                                              window, stride, cutoff, merge, eps, mode, partial);
   return cudaGetLastError();
 }
 
-cudaError_t launch_reduce_views(const float* packed, const double* partial, int64_t V, int64_t N, float* out,
-                                cudaStream_t stream) {
+cudaError_t dss_cuda::launch_reduce_views(const float* packed, const double* partial, int64_t V, int64_t N,
+                                          float* out, cudaStream_t stream) {
   if (N == 0) return cudaSuccess;
-  DSS_LAUNCH(reduce_views_kernel, blocks_for(N, kThreads1D), kThreads1D, stream)(packed, partial, V, N, out);
+  const unsigned int blocks = blocks_for(N, kThreads1D);
+  DSS_LAUNCH(reduce_views_kernel, blocks, kThreads1D, stream)(packed, partial, V, N, out);
   return cudaGetLastError();
 }
-
-}  // namespace dss_cuda

@@ -136,7 +136,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   background = prep(background, dev, torch::kFloat32, "background");
   TORCH_CHECK(depth.sizes() == idx.sizes() && rho.sizes() == idx.sizes(), "depth and rho must be shaped like idx");
   TORCH_CHECK(images.numel() == V * H * W * C && grad.numel() == V * H * W * C, "images and grad must be (V,H,W,C)");
-  TORCH_CHECK(R.numel() == V * 9 && focal.numel() == V && principal.numel() == V * 2, "camera tensors must have V views");
+  TORCH_CHECK(R.numel() == V * 9 && focal.numel() == V && principal.numel() == V * 2,
+              "camera tensors must have V views");
   TORCH_CHECK(background.numel() == C, "background must have C entries");
 
   const cudaStream_t stream = current_stream();

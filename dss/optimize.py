@@ -1,0 +1,341 @@
+"""Multi-view shape-from-rendering (paper sections "Implementation details", "Results").
+
+The optimiser moves points and normals until their renders match reference images from many
+views. It is the engine of deformation (``dss-deform``), image-filter editing (``dss-filter``)
+and denoising (``dss-denoise``); the caller supplies the reference as a function of the cameras.
+
+Schedule (paper "Alternating normal and point update"): each cycle samples ``views`` cameras
+(farthest-point sampling on a sphere with jitter), then makes ``normal_steps`` (T_n) steps on
+the normals and ``point_steps`` (T_p) steps on the positions. During normal steps the positions
+still move by the regulariser gradients alone. ``schedule="joint"`` updates both together.
+
+Scale conventions, under which the paper's learning rates (5 for points, 5000 for normals)
+work: the image loss is averaged over all V x H x W x C elements (``loss.mean()`` over the
+batch of renders), positions are in units where the object's bounding-box diagonal is about 1
+(the apps normalise), images are about 256 x 256. SGD with Nesterov momentum 0.9; normals are
+renormalised to unit length after every step; the gradient of each position coordinate is
+clipped to +-``clip_point_grad`` (0.01, the official implementation's default) so that a few
+points with huge visibility gradients do not jump across the scene.
+
+Regulariser weights: with ``regularizer_weighting="relative"`` (default) the weights gamma_p
+and gamma_r are what the paper's Appendix says they are for: the ratio of the mean per-point
+gradient magnitude of L_p (L_r) to that of the image loss. Each step rescales the regulariser
+gradients to gamma x (mean |dL_I/dp|), using the latest point step's image-gradient magnitude
+during normal steps. This keeps the balance independent of point count and scene scale (the
+absolute losses are not: L_r's 1e-4 is an absolute squared length). ``"absolute"`` adds
+gamma x L as in Eq. total_loss.
+
+Divergence guard: a step that makes the loss or any parameter non-finite is undone, the
+learning rates are halved, and a warning says so (``history["lr_halvings"]``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import torch
+
+from .cameras import Cameras
+from .losses import l1_loss, smape_loss
+from .regularizers import ProjectionLoss, RegularizerConfig, RepulsionLoss, find_neighbors
+from .splats import auto_sigma
+from .render import RenderOutput, RenderSettings, render
+from .views import SphereViewSampler, error_aware_cameras
+
+log = logging.getLogger(__name__)
+
+__all__ = ["OptimizerConfig", "MultiViewOptimizer", "OptimizationResult", "occlusion_counts", "window_for_cycle"]
+
+Reference = Callable[[Cameras], torch.Tensor]
+
+
+@dataclass
+class OptimizerConfig:
+    """Settings of :class:`MultiViewOptimizer` (defaults: the paper's large-deformation setup).
+
+    Local editing / denoising in the paper: ``normal_steps=19, point_steps=1``.
+    """
+
+    cycles: int = 16
+    normal_steps: int = 15
+    point_steps: int = 25
+    schedule: str = "alternating"  # "alternating" | "joint"
+    lr_points: float = 5.0
+    lr_normals: float = 5000.0
+    momentum: float = 0.9
+    nesterov: bool = True
+    clip_point_grad: float | None = 0.01
+    image_loss: str = "smape"  # "smape" | "l1"
+    projection_weight: float = 0.02
+    repulsion_weight: float = 0.05
+    regularizer_weighting: str = "relative"  # "relative" | "absolute"
+    projection_bandwidth: str | float = "default"  # "default" | "large" | a number
+    repulsion_bandwidth: str | float = "default"
+    reg_k: int = 16
+    views: int = 12
+    fov_deg: float = 30.0
+    view_jitter: float = 0.1
+    resample_every_cycle: bool = True
+    window_start: int = 16
+    window_end: int = 4
+    window_decay: float = 0.9
+    window_samples: int = 8
+    error_aware_cycles: int = 0
+    error_aware_distance: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.schedule not in ("alternating", "joint"):
+            raise ValueError(f"schedule must be 'alternating' or 'joint', got {self.schedule!r}")
+        if self.regularizer_weighting not in ("relative", "absolute"):
+            raise ValueError(f"regularizer_weighting must be 'relative' or 'absolute', got {self.regularizer_weighting!r}")
+        if self.image_loss not in ("smape", "l1"):
+            raise ValueError(f"image_loss must be 'smape' or 'l1', got {self.image_loss!r}")
+        if self.views <= 0:
+            raise ValueError(f"views per step must be positive, got {self.views}")
+        for name in ("lr_points", "lr_normals"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.cycles + self.error_aware_cycles == 0 or self.normal_steps + self.point_steps == 0:
+            raise ValueError("nothing to do: cycles and steps are all zero")
+
+
+@dataclass
+class OptimizationResult:
+    points: torch.Tensor
+    normals: torch.Tensor
+    history: dict = field(default_factory=dict)
+
+
+def window_for_cycle(cfg: OptimizerConfig, cycle: int) -> tuple[int, int]:
+    """Visibility-gradient window (half size, stride) for a cycle: long range first, then local."""
+    w = max(cfg.window_end, int(round(cfg.window_start * cfg.window_decay**cycle)))
+    stride = max(1, math.ceil(w / max(1, cfg.window_samples)))
+    return w, stride
+
+
+def occlusion_counts(out: RenderOutput) -> torch.Tensor:
+    """o_k: in how many views point k is rendered (valid splat) but visible at no pixel. (N,)"""
+    V, N = out.splats.packed.shape[:2]
+    vis = out.fragments.visible
+    idx = out.fragments.idx.long()
+    seen = torch.zeros(V, N, dtype=torch.bool, device=idx.device)
+    v_ids = torch.arange(V, device=idx.device)[:, None, None, None].expand_as(idx)
+    seen[v_ids[vis], idx[vis]] = True
+    occluded = out.splats.valid & ~seen
+    return occluded.sum(0).float()
+
+
+def _bandwidth(rule, points):
+    if isinstance(rule, str):
+        return RegularizerConfig(bandwidth_rule=rule)
+    return RegularizerConfig(bandwidth=float(rule))
+
+
+class MultiViewOptimizer:
+    """Optimise points and normals against reference images.
+
+    Args:
+        points, normals: (N, 3) initial state (copied).
+        reference: ``cameras -> (V, H, W, C)`` target images for those cameras (computed once
+            per camera set and cached for the cycle).
+        config: :class:`OptimizerConfig`.
+        settings: renderer settings (``window`` is overridden by the schedule).
+        center, radius: the sphere the cameras look at (default: the start cloud's bounds).
+        shading: shading used for both the renders and (by the caller) the references.
+        callback: called as ``callback(step, state_dict)`` after every step (snapshots, logging).
+    """
+
+    def __init__(self, points: torch.Tensor, normals: torch.Tensor, reference: Reference,
+                 config: OptimizerConfig | None = None, settings: RenderSettings | None = None,
+                 center=None, radius: float | None = None, shading="sun", backend: str = "auto",
+                 callback: Callable[[int, dict], None] | None = None, sampler: SphereViewSampler | None = None,
+                 image_size: int = 256):
+        self.cfg = config or OptimizerConfig()
+        self.settings = settings or RenderSettings()
+        self.points = points.detach().clone().float().requires_grad_(True)
+        self.normals = torch.nn.functional.normalize(normals.detach().clone().float(), dim=1).requires_grad_(True)
+        self.reference = reference
+        self.shading = shading
+        self.backend = backend
+        self.callback = callback
+        p = self.points.detach()
+        if center is None:
+            center = ((p.max(0).values + p.min(0).values) / 2).tolist()
+        if radius is None:
+            radius = float((p - torch.tensor(center)).norm(dim=1).max())
+        self.sampler = sampler or SphereViewSampler(tuple(center), radius, self.cfg.views, image_size,
+                                                    self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed)
+        self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k)
+        self.rep = RepulsionLoss(_bandwidth(self.cfg.repulsion_bandwidth, p), k=self.cfg.reg_k)
+        self.proj.set_initial_shape(p)
+        self.rep.set_initial_shape(p)
+        self.lr_scale = 1.0
+        self._img_grad_scale: float | None = None
+        self._neighbors = None
+        self._sigma = None
+        self.history: dict = {"step": [], "loss": [], "image_loss": [], "time": [], "kind": [], "lr_halvings": 0,
+                              "config": asdict(self.cfg)}
+        self._make_optimizers()
+
+    # ------------------------------------------------------------------ internals
+    def _make_optimizers(self):
+        c = self.cfg
+        self.opt_p = torch.optim.SGD([self.points], lr=c.lr_points * self.lr_scale, momentum=c.momentum, nesterov=c.nesterov and c.momentum > 0)
+        self.opt_n = torch.optim.SGD([self.normals], lr=c.lr_normals * self.lr_scale, momentum=c.momentum, nesterov=c.nesterov and c.momentum > 0)
+
+    def _image_loss(self, images, target):
+        if self.cfg.image_loss == "smape":
+            return smape_loss(images, target, channel_reduction="mean")
+        return l1_loss(images, target, channel_reduction="mean")
+
+    def _regularizer_grads(self, occl) -> torch.Tensor | None:
+        """gamma-weighted regulariser gradients on the points (N, 3), or None."""
+        c = self.cfg
+        total = None
+        for weight, term in ((c.projection_weight, self.proj), (c.repulsion_weight, self.rep)):
+            if weight <= 0:
+                continue
+            p = self.points.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(term(p, self.normals.detach(), occl, neighbors=self._neighbors), p)
+            g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
+            if c.regularizer_weighting == "relative":
+                ref = self._img_grad_scale
+                mag = g.norm(dim=1).mean()
+                g = g * (weight * ref / mag) if (ref is not None and mag > 0) else torch.zeros_like(g)
+            else:
+                g = weight * g
+            total = g if total is None else total + g
+        return total
+
+    def _step(self, kind: str, cams: Cameras, target: torch.Tensor, window: int, stride: int):
+        s = self.settings
+        settings = RenderSettings(**{**asdict(s), "window": window, "window_stride": stride})
+        # Point steps move points by the image loss; normal steps need its point gradient only
+        # once, to set the scale of the relative regulariser weights.
+        image_moves_points = kind in ("points", "joint")
+        need_img_scale = (self._img_grad_scale is None and self.cfg.regularizer_weighting == "relative"
+                          and (self.cfg.projection_weight > 0 or self.cfg.repulsion_weight > 0))
+        move_normals = kind in ("normals", "joint")
+        self.opt_p.zero_grad(set_to_none=True)
+        self.opt_n.zero_grad(set_to_none=True)
+        saved = (self.points.detach().clone(), self.normals.detach().clone())
+        pts = self.points if (image_moves_points or need_img_scale) else self.points.detach()
+        out = render(pts, self.normals if move_normals else self.normals.detach(), cams, settings,
+                     shading=self.shading, backend=self.backend, sigma=self._sigma)
+        img_loss = self._image_loss(out.images, target)
+        if not torch.isfinite(img_loss):
+            self._diverged("the image loss is not finite", saved)
+            return float("nan"), float("nan")
+        if img_loss.requires_grad:
+            img_loss.backward()
+        g_img = self.points.grad
+        if g_img is not None:
+            g_img = g_img.detach().clone()
+            self._img_grad_scale = float(g_img.norm(dim=1).mean())
+            if not image_moves_points:
+                g_img = None
+        occl = occlusion_counts(out).detach()
+        g_reg = self._regularizer_grads(occl)
+        # Points move in every step: by image + regulariser gradients in point steps, by the
+        # regulariser alone in normal steps (paper "Alternating normal and point update").
+        g = g_img if g_reg is None else (g_reg if g_img is None else g_img + g_reg)
+        self.points.grad = g
+        if g is not None:
+            if not torch.isfinite(g).all():
+                self._diverged("non-finite point gradients", saved)
+                return float("nan"), float("nan")
+            if self.cfg.clip_point_grad:
+                g.clamp_(-self.cfg.clip_point_grad, self.cfg.clip_point_grad)
+            self.opt_p.step()
+        if move_normals and self.normals.grad is not None:
+            if not torch.isfinite(self.normals.grad).all():
+                self._diverged("non-finite normal gradients", saved)
+                return float("nan"), float("nan")
+            self.opt_n.step()
+        with torch.no_grad():
+            self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
+        if not (torch.isfinite(self.points).all() and torch.isfinite(self.normals).all()):
+            self._diverged("a step produced NaN/inf parameters", saved)
+            return float("nan"), float("nan")
+        return float(img_loss.detach()), float(img_loss.detach())
+
+    def _diverged(self, why: str, saved):
+        with torch.no_grad():
+            self.points.copy_(saved[0])
+            self.normals.copy_(saved[1])
+        self.lr_scale *= 0.5
+        self.history["lr_halvings"] += 1
+        log.warning("%s: step rejected, learning rates halved (x%.3g of the configured ones)", why, self.lr_scale)
+        self._make_optimizers()
+
+    def _refresh_neighbourhoods(self):
+        """Once per cycle: kNN lists for the regularisers and the splat sizes (points move little
+        within a cycle; the regularisers re-apply their bandwidth masks every step)."""
+        p = self.points.detach()
+        self._neighbors = find_neighbors(p, self.cfg.reg_k)
+        s = self.settings
+        self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
+
+    def _cycle_plan(self) -> list[str]:
+        c = self.cfg
+        if c.schedule == "joint":
+            return ["joint"] * (c.normal_steps + c.point_steps)
+        return ["normals"] * c.normal_steps + ["points"] * c.point_steps
+
+    # ------------------------------------------------------------------ public
+    @property
+    def total_steps(self) -> int:
+        return (self.cfg.cycles + self.cfg.error_aware_cycles) * len(self._cycle_plan())
+
+    def run(self, progress: Callable[[int, float], None] | None = None) -> OptimizationResult:
+        """Run all cycles; ``progress(step, loss)`` is called after each step (progress bars)."""
+        c = self.cfg
+        step = 0
+        t0 = time.perf_counter()
+        gen = torch.Generator().manual_seed(c.seed + 1)
+        cams = None
+        for cycle in range(c.cycles + c.error_aware_cycles):
+            if cams is None or c.resample_every_cycle:
+                if cycle >= c.cycles and cams is not None:
+                    cams = self._error_aware(cams, gen)
+                else:
+                    cams = self.sampler.sample()
+            with torch.no_grad():
+                target = self.reference(cams).detach()
+            self._refresh_neighbourhoods()
+            window, stride = window_for_cycle(c, cycle)
+            for kind in self._cycle_plan():
+                loss, img_loss = self._step(kind, cams, target, window, stride)
+                step += 1
+                h = self.history
+                h["step"].append(step)
+                h["loss"].append(loss)
+                h["image_loss"].append(img_loss)
+                h["kind"].append(kind)
+                h["time"].append(time.perf_counter() - t0)
+                if self.callback is not None:
+                    self.callback(step, {"points": self.points.detach(), "normals": self.normals.detach(), "cycle": cycle,
+                                         "loss": loss, "cameras": cams})
+                if progress is not None:
+                    progress(step, loss)
+        self.history["wall_time"] = time.perf_counter() - t0
+        self.history["steps"] = step
+        return OptimizationResult(self.points.detach().clone(), self.normals.detach().clone(), self.history)
+
+    def _error_aware(self, cams: Cameras, gen: torch.Generator) -> Cameras:
+        with torch.no_grad():
+            out = render(self.points.detach(), self.normals.detach(), cams, self.settings, shading=self.shading, backend=self.backend)
+            target = self.reference(cams)
+            residual = (out.images - target).abs().sum(-1)
+        new, focus = error_aware_cameras(self.points.detach(), cams, residual, self.cfg.views,
+                                         distance=self.cfg.error_aware_distance, generator=gen)
+        log.info("error-aware views around %s", [round(x, 3) for x in focus.tolist()])
+        return new

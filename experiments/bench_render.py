@@ -1,0 +1,186 @@
+"""``dss-bench``: time the renderer's forward and backward passes, both backends, one run.
+
+    dss-bench                      # 8K, 20K, 100K points x 12 views x 256^2, writes results/bench/
+    dss-bench --sizes 8000 --reps 3 --windows 2 4
+
+Points are sampled from the kangaroo mesh in ../shared/data when it is there (a real shape),
+else from a generated torus knot. Every number is the median of ``--reps`` runs after one
+warm-up run, all in this process; the JSON records the machine (threads, CPU model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dss.cameras import fit_distance, focal_from_fov, fps_sphere_cameras
+from dss.io_utils import atomic_write_json, atomic_write_text
+from dss.pointcloud import normalize_unit_diagonal
+from dss.render import RenderSettings, render
+
+log = logging.getLogger("dss-bench")
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def benchmark_cloud(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """(points, normals, source) with n points on a real surface when available."""
+    import open3d as o3d
+
+    mesh_path = SHARED / "Kangaroo_V10k.ply"
+    if mesh_path.exists():
+        mesh = o3d.io.read_triangle_mesh(str(mesh_path))
+        src = f"{mesh_path.name} (uniform surface samples)"
+    else:
+        mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=1.0, tube_radius=0.3, radial_resolution=120, tubular_resolution=60)
+        src = "generated torus"
+    mesh.compute_triangle_normals()
+    o3d.utility.random.seed(seed)
+    pcd = mesh.sample_points_uniformly(n, use_triangle_normal=True)
+    p = torch.from_numpy(np.asarray(pcd.points, np.float32).copy())
+    nn = torch.from_numpy(np.asarray(pcd.normals, np.float32).copy())
+    p, _, _ = normalize_unit_diagonal(p)
+    return p, nn, src
+
+
+def cameras_for(points: torch.Tensor, views: int, size: int, seed: int = 0):
+    radius = float(points.norm(dim=1).max())
+    fov = 30.0
+    return fps_sphere_cameras(views, (0, 0, 0), fit_distance(radius, fov), focal_from_fov(fov, size), (size, size),
+                              jitter=0.05, generator=torch.Generator().manual_seed(seed))
+
+
+def _median_time(fn, reps: int) -> float:
+    fn()  # warm-up
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+def bench_forward(points, normals, cams, backend: str, reps: int) -> float:
+    s = RenderSettings()
+    sigma = None
+
+    def fwd():
+        with torch.no_grad():
+            render(points, normals, cams, s, backend=backend, sigma=sigma)
+
+    from dss.splats import auto_sigma
+
+    sigma = auto_sigma(points)  # the splat size is an input here, not part of the timed pass
+    return _median_time(fwd, reps)
+
+
+def bench_backward(points, normals, cams, backend: str, reps: int, window: int) -> dict:
+    """Median forward-with-grad and backward times for one SMAPE-like L1 step."""
+    from dss.splats import auto_sigma
+
+    s = RenderSettings(window=window)
+    sigma = auto_sigma(points)
+    with torch.no_grad():
+        target = render(points + 0.003 * torch.randn_like(points), normals, cams, s, backend=backend, sigma=sigma).images
+    fwd_t, bwd_t = [], []
+    for r in range(reps + 1):
+        p = points.clone().requires_grad_()
+        n = normals.clone().requires_grad_()
+        t0 = time.perf_counter()
+        img = render(p, n, cams, s, backend=backend, sigma=sigma).images
+        loss = (img - target).abs().mean()
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        if r > 0:
+            fwd_t.append(t1 - t0)
+            bwd_t.append(t2 - t1)
+    return {"forward_with_grad_ms": 1e3 * statistics.median(fwd_t), "backward_ms": 1e3 * statistics.median(bwd_t)}
+
+
+def machine_info() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__}
+
+
+def main(argv=None) -> int:
+    run(argv)
+    return 0
+
+
+def run(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[8000, 20000, 100000])
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--image-size", type=int, default=256)
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--reference-reps", type=int, default=5)
+    ap.add_argument("--reference-max-points", type=int, default=100000,
+                    help="skip the pure-torch reference above this size (it is slow)")
+    ap.add_argument("--windows", type=int, nargs="*", default=[0, 2, 4, 8, 16],
+                    help="visibility-gradient window half sizes timed for the backward pass (C++ backend)")
+    ap.add_argument("--backward-sizes", type=int, nargs="*", default=[20000])
+    ap.add_argument("--out", default="results/bench")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    from dss import _ext
+
+    if not _ext.cpu_available():
+        raise SystemExit(f"the C++ backend is not available: {_ext.build_error()}")
+    rows, back_rows = [], []
+    for n in args.sizes:
+        pts, nrm, src = benchmark_cloud(n)
+        cams = cameras_for(pts, args.views, args.image_size)
+        row = {"points": n, "views": args.views, "image_size": args.image_size, "source": src}
+        row["cpp_forward_ms"] = 1e3 * bench_forward(pts, nrm, cams, "cpp", args.reps)
+        log.info("%d points: cpp forward %.1f ms", n, row["cpp_forward_ms"])
+        if n <= args.reference_max_points:
+            row["reference_forward_ms"] = 1e3 * bench_forward(pts, nrm, cams, "reference", args.reference_reps)
+            row["speedup"] = row["reference_forward_ms"] / row["cpp_forward_ms"]
+            log.info("%d points: reference forward %.1f ms (x%.1f)", n, row["reference_forward_ms"], row["speedup"])
+        rows.append(row)
+        if n in args.backward_sizes:
+            for w in args.windows:
+                b = bench_backward(pts, nrm, cams, "cpp", args.reps, w)
+                b.update(points=n, window=w, forward_nograd_ms=row["cpp_forward_ms"])
+                b["backward_over_forward"] = b["backward_ms"] / row["cpp_forward_ms"]
+                back_rows.append(b)
+                log.info("%d points window %d: backward %.1f ms (%.2fx forward)", n, w, b["backward_ms"], b["backward_over_forward"])
+    result = {"machine": machine_info(), "forward": rows, "backward": back_rows,
+              "command": "dss-bench " + " ".join(argv if argv is not None else __import__("sys").argv[1:])}
+    out = Path(args.out)
+    atomic_write_json(out / "render_bench.json", result)
+    md = ["| points | views | size | C++ forward (ms) | reference forward (ms) | speed-up |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        ref = f"{r['reference_forward_ms']:.0f}" if "reference_forward_ms" in r else "skipped"
+        sp = f"{r['speedup']:.1f}x" if "speedup" in r else "-"
+        md.append(f"| {r['points']} | {r['views']} | {r['image_size']} | {r['cpp_forward_ms']:.1f} | {ref} | {sp} |")
+    if back_rows:
+        md += ["", "| points | window (half size, px) | forward with grad (ms) | backward (ms) | backward / forward |",
+               "|---|---|---|---|---|"]
+        for b in back_rows:
+            md.append(f"| {b['points']} | {b['window']} | {b['forward_with_grad_ms']:.1f} | {b['backward_ms']:.1f} | {b['backward_over_forward']:.2f} |")
+    md.append("")
+    md.append(f"Machine: {result['machine']['cpu']}, {result['machine']['torch_threads']} torch threads; median of {args.reps} runs after a warm-up.")
+    atomic_write_text(out / "render_bench.md", "\n".join(md) + "\n")
+    print("\n".join(md))
+    return result
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
