@@ -1,0 +1,227 @@
+"""Time the CUDA kernels (and the CUDA render step, once render() has backend="cuda") on a GPU.
+
+    python -m experiments.bench_gpu                       # 20K and 100K points x 12 views x 256^2
+    python -m experiments.bench_gpu --points 20000 --repeats 20 --out results/bench/gpu.json
+
+Same scenes as ``dss-bench`` (experiments/bench_render.py: kangaroo samples when ../shared/data is
+there, else a generated torus; a Fibonacci sphere if open3d is missing). Every time is the median
+of ``--repeats`` runs after ``--warmup`` runs, each bracketed by torch.cuda.synchronize(). The
+JSON names the device; it is printed and, with ``--out``, written atomically.
+
+Timed, per size:
+- ``kernels``: ``project_splats`` + shading (torch, no grad), ``rasterize_forward`` (cache and
+  blended image), ``visibility_backward`` (dss gradient, window 4), and their sum;
+- ``render`` (only when ``dss.render`` accepts ``backend="cuda"``): one optimisation step,
+  forward with autograd, L1 loss, backward; forward-only without grad; peak GPU memory.
+Targets (issue 5): one H100, forward + backward at most 10 ms for 20K points, 25 ms for 100K.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import time
+
+import torch
+
+log = logging.getLogger("dss-bench-gpu")
+
+TARGET_STEP_MS = {20_000: 10.0, 100_000: 25.0}
+
+
+def _cloud(n: int):
+    """(points, normals, source) on the CPU."""
+    try:
+        from experiments.bench_render import benchmark_cloud
+
+        return benchmark_cloud(n)
+    except ImportError:  # open3d missing
+        from dss.cameras import fibonacci_sphere
+
+        p = fibonacci_sphere(n) * 0.5
+        return p, p / p.norm(dim=1, keepdim=True), "Fibonacci sphere"
+
+
+def _cameras(points: torch.Tensor, views: int, size: int):
+    from experiments.bench_render import cameras_for
+
+    return cameras_for(points, views, size)
+
+
+def _timed(fn, warmup: int, repeats: int) -> dict:
+    for _ in range(warmup):
+        fn()
+    torch.cuda.synchronize()
+    ts = []
+    for _ in range(repeats):
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        torch.cuda.synchronize()
+        ts.append(1e3 * (time.perf_counter() - t0))
+    return {"median_ms": statistics.median(ts), "min_ms": min(ts), "max_ms": max(ts), "runs": repeats}
+
+
+def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, warmup: int, repeats: int) -> dict:
+    """The CUDA kernels alone, on inputs prepared outside the timed region."""
+    from dss.shading import shade
+    from dss.splats import project_splats
+
+    H, W = cams.image_size
+    bg = torch.zeros(3, device=points.device)
+
+    def project():
+        with torch.no_grad():
+            sp = project_splats(points, normals, cams, sigma, settings.cutoff, settings.backface_culling,
+                                settings.znear, filter_variance=settings.filter_variance)
+            return sp.packed.contiguous(), shade("sun", points, normals, cams).contiguous()
+
+    packed, attrs = project()
+    fwd_args = (packed, attrs, H, W, settings.K, settings.cutoff, merge, bg)
+    idx, depth, rho, images, mask = mod.rasterize_forward(*fwd_args)
+    g = torch.Generator(device=points.device).manual_seed(0)
+    grad = torch.randn(images.shape, device=points.device, generator=g) / images.numel()
+    bwd_args = (packed, attrs, idx, depth, rho, images, grad, cams.R, cams.focal, cams.principal, bg,
+                settings.window, settings.window_stride, settings.cutoff, merge, settings.epsilon, 0)
+    res = {
+        "project_and_shade": _timed(project, warmup, repeats),
+        "rasterize_forward": _timed(lambda: mod.rasterize_forward(*fwd_args), warmup, repeats),
+        "visibility_backward": _timed(lambda: mod.visibility_backward(*bwd_args), warmup, repeats),
+        "covered_pixels": int(mask.sum()),
+        "cached_fragments": int((idx >= 0).sum()),
+    }
+    res["sum_median_ms"] = sum(res[k]["median_ms"] for k in ("project_and_shade", "rasterize_forward",
+                                                             "visibility_backward"))
+    return res
+
+
+def bench_render_step(points, normals, cams, sigma, settings, warmup: int, repeats: int) -> dict:
+    """One optimisation step through render(backend="cuda"): forward with grad, L1, backward."""
+    from dss.render import render
+
+    with torch.no_grad():
+        target = render(points + 0.003 * torch.randn_like(points), normals, cams, settings, backend="cuda",
+                        sigma=sigma).images
+    fwd, bwd, step = [], [], []
+    for r in range(warmup + repeats):
+        p = points.clone().requires_grad_()
+        n = normals.clone().requires_grad_()
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        img = render(p, n, cams, settings, backend="cuda", sigma=sigma).images
+        loss = (img - target).abs().mean()
+        torch.cuda.synchronize()
+        t1 = time.perf_counter()
+        loss.backward()
+        torch.cuda.synchronize()
+        t2 = time.perf_counter()
+        if r >= warmup:
+            fwd.append(1e3 * (t1 - t0))
+            bwd.append(1e3 * (t2 - t1))
+            step.append(1e3 * (t2 - t0))
+
+    def nograd():
+        with torch.no_grad():
+            render(points, normals, cams, settings, backend="cuda", sigma=sigma)
+
+    torch.cuda.reset_peak_memory_stats()
+    p = points.clone().requires_grad_()
+    (render(p, normals, cams, settings, backend="cuda", sigma=sigma).images - target).abs().mean().backward()
+    torch.cuda.synchronize()
+    peak = torch.cuda.max_memory_allocated()
+    return {
+        "forward_with_grad_ms": statistics.median(fwd),
+        "backward_ms": statistics.median(bwd),
+        "step_ms": statistics.median(step),
+        "step_min_ms": min(step),
+        "forward_nograd": _timed(nograd, warmup, repeats),
+        "peak_memory_mb": peak / 2**20,
+        "runs": repeats,
+    }
+
+
+def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, warmup: int = 3,
+        repeats: int = 10) -> dict:
+    """Benchmark every size; raises RuntimeError when there is no GPU or the kernels do not build."""
+    import importlib
+
+    from dss import _ext_cuda
+    from dss.pointcloud import bbox_diagonal
+    from dss.render import RenderSettings
+    from dss.splats import auto_sigma
+
+    if not torch.cuda.is_available():
+        raise RuntimeError("no CUDA device: this benchmark needs a GPU")
+    mod = _ext_cuda.load_cuda()
+    if mod is None:
+        raise RuntimeError(f"the CUDA kernels are not available: {_ext_cuda.build_error()}")
+    dev = torch.device("cuda")
+    settings = RenderSettings()
+    render_mod = importlib.import_module("dss.render")  # the module, even if dss exports a render()
+    render_has_cuda = "cuda" in getattr(render_mod, "BACKENDS", ())
+    results = []
+    for n in points_list:
+        pts, nrm, src = _cloud(n)
+        cams = _cameras(pts, views, image_size)
+        sigma = auto_sigma(pts)  # an input of the step, not timed (as in dss-bench)
+        merge = settings.merge_fraction * float(bbox_diagonal(pts))
+        pts, nrm, sigma, cams = pts.to(dev), nrm.to(dev), sigma.to(dev), cams.to(dev)
+        row = {"points": n, "views": views, "image_size": image_size, "source": src, "K": settings.K,
+               "window": settings.window}
+        row["kernels"] = bench_kernels(mod, pts, nrm, cams, sigma, settings, merge, warmup, repeats)
+        log.info("%d points: kernels %.3f ms (forward %.3f, backward %.3f)", n, row["kernels"]["sum_median_ms"],
+                 row["kernels"]["rasterize_forward"]["median_ms"], row["kernels"]["visibility_backward"]["median_ms"])
+        if render_has_cuda:
+            row["render"] = bench_render_step(pts, nrm, cams, sigma, settings, warmup, repeats)
+            log.info("%d points: render step %.3f ms", n, row["render"]["step_ms"])
+            if n in TARGET_STEP_MS:
+                row["target_step_ms"] = TARGET_STEP_MS[n]
+                row["meets_target"] = row["render"]["step_ms"] <= TARGET_STEP_MS[n]
+        else:
+            row["render"] = "not measured: dss.render has no backend='cuda' yet"
+        results.append(row)
+    props = torch.cuda.get_device_properties(dev)
+    return {
+        "device": torch.cuda.get_device_name(dev),
+        "compute_capability": f"{props.major}.{props.minor}",
+        "gpu_memory_gb": props.total_memory / 1e9,
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "warmup": warmup,
+        "repeats": repeats,
+        "results": results,
+    }
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--points", type=int, nargs="+", default=[20_000, 100_000])
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--image-size", type=int, default=256)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--out", default=None, help="also write the JSON here (atomically)")
+    args = ap.parse_args(argv)
+    if args.repeats < 1 or args.warmup < 0:
+        ap.error("--repeats must be >= 1 and --warmup >= 0")
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    try:
+        result = run(args.points, args.views, args.image_size, args.warmup, args.repeats)
+    except RuntimeError as e:
+        print(json.dumps({"error": str(e)}), file=sys.stderr)
+        raise SystemExit(2) from e
+    result["command"] = "python -m experiments.bench_gpu " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out:
+        from dss.io_utils import atomic_write_text
+
+        atomic_write_text(args.out, text + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main()

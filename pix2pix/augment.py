@@ -1,0 +1,128 @@
+"""Augmentations that keep the lighting of training pairs consistent.
+
+The training renders are lit by a light **fixed to the camera** (a point light given in camera
+space, x right, y down, z forward). What the denoiser must learn is how shading encodes local
+geometry *under that light*; at test time it always sees the same light. So an augmentation is
+safe only if the transformed image is one the same camera+light could have produced:
+
+- **Random crops: safe.** Every pixel keeps the shading it was rendered with; only the framing
+  changes. The generator is fully convolutional and cannot use absolute position anyway, and it
+  is applied to full renders at test time. (Crops must keep H, W multiples of 4.)
+- **Horizontal flip** (x -> -x): shows a mirrored shape lit by a light mirrored to -x. Safe
+  **only if the light's x is 0** (light in the camera's vertical symmetry plane). Otherwise a
+  bump lit from the left becomes a bump lit from the right, which under the real light reads
+  as a dent: the pairs stay consistent with each other but teach the wrong shading->geometry
+  relation and waste capacity on a light never seen at test time.
+- **Vertical flip** (y -> -y): safe only if the light's y is 0.
+- **Transpose** (x <-> y; with the flips it generates the 90-degree rotations): safe only if
+  the light's x equals its y.
+- The three orthogonal RGB **sun lights** of the paper's default shading are not symmetric
+  under any of these: no flips.
+- **Photometric changes** (brightness, contrast, gamma, colour jitter): unsafe. Intensity is
+  the signal (n . l); scaling it changes the implied normals, and DSS later compares the
+  network's output with renders in absolute terms.
+- **Rescaling**: unsafe-ish: it changes splat footprint and noise amplitude in pixels relative
+  to what the renderer produces at the training focal length/distance; data generation
+  already varies distance instead.
+
+:func:`safe_flips` applies these rules to a manifest's render block; unknown lighting gives no
+flips (the conservative choice).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FLIPS", "find_camera_light_position", "safe_flips", "apply_flips", "resolve_flips"]
+
+FLIPS = ("hflip", "vflip", "transpose")
+
+
+def find_camera_light_position(render: dict[str, Any] | None) -> list[float] | None:
+    """The point light's camera-space position from a render block, or None when not found.
+
+    Looks for ``light: {position, space}``, ``point_light: {position}``, ``light_position`` and
+    ``light_position_camera``. A light declared in world space returns None (not camera-fixed).
+    """
+    if not isinstance(render, dict):
+        return None
+    shading = str(render.get("shading", "")).lower()
+    if shading in ("sun", "suns", "three_suns"):
+        return None
+    candidates: list[tuple[Any, Any]] = []
+    for key in ("light", "point_light"):
+        v = render.get(key)
+        if isinstance(v, dict):
+            candidates.append((v.get("position"), v.get("space", "camera")))
+    candidates.append((render.get("light_position_camera"), "camera"))
+    candidates.append((render.get("light_position"), render.get("light_space", "camera")))
+    for pos, space in candidates:
+        if pos is None:
+            continue
+        if str(space).lower() != "camera":
+            return None
+        arr = np.asarray(pos, dtype=float).reshape(-1)
+        if arr.shape == (3,) and np.all(np.isfinite(arr)):
+            return arr.tolist()
+    return None
+
+
+def safe_flips(render: dict[str, Any] | None, rtol: float = 1e-6) -> list[str]:
+    """Flips that leave the camera-fixed light where it is (see module docstring)."""
+    pos = find_camera_light_position(render)
+    if pos is None:
+        return []
+    x, y, z = pos
+    tol = rtol * max(1.0, abs(x), abs(y), abs(z))
+    out = []
+    if abs(x) <= tol:
+        out.append("hflip")
+    if abs(y) <= tol:
+        out.append("vflip")
+    if abs(x - y) <= tol:
+        out.append("transpose")
+    return out
+
+
+def resolve_flips(flips: str | Sequence[str] | None, render: dict[str, Any] | None) -> list[str]:
+    """Turn a config value (``"auto"``, ``"none"``/None, or a list) into a list of flips.
+
+    An explicit list that the light makes unsafe is honoured but logged as a warning.
+    """
+    if flips is None or flips == "none":
+        return []
+    if flips == "auto":
+        chosen = safe_flips(render)
+        log.info("augmentation: flips safe for this dataset's lighting: %s", chosen or "none")
+        return chosen
+    if isinstance(flips, str):
+        flips = [flips]
+    flips = list(flips)
+    bad = [f for f in flips if f not in FLIPS]
+    if bad:
+        raise ValueError(f"unknown flips {bad}; choose from {list(FLIPS)}, 'auto' or 'none'")
+    unsafe = [f for f in flips if f not in safe_flips(render)]
+    if unsafe:
+        log.warning("augmentation: %s change the light direction of this dataset's renders", unsafe)
+    return flips
+
+
+def apply_flips(arrays: Sequence[np.ndarray], flips: Sequence[str],
+                rng: np.random.Generator) -> list[np.ndarray]:
+    """Apply each of ``flips`` with probability 1/2 to all ``arrays`` alike ((H, W, ...) each)."""
+    out = list(arrays)
+    for f in flips:
+        if rng.random() < 0.5:
+            if f == "hflip":
+                out = [a[:, ::-1] for a in out]
+            elif f == "vflip":
+                out = [a[::-1] for a in out]
+            elif f == "transpose":
+                out = [np.swapaxes(a, 0, 1) for a in out]
+    return out

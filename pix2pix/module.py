@@ -1,0 +1,364 @@
+"""LightningModule training the Pix2Pix denoiser (paper appendix "Denoising Pix2Pix").
+
+Manual optimisation of a generator G and an optional conditional PatchGAN discriminator D:
+
+- D step: LSGAN, ``0.5 * (mse(D(x, y), 1) + mse(D(x, G(x)), 0))`` (Mao et al. 2017);
+- G step: ``lambda_gan * mse(D(x, G(x)), 1) + lambda_l1 * |G(x) - y|_1`` (lambda_l1 = 100);
+- Adam(lr 2e-4, betas (0.5, 0.999)) for both; optional pix2pix "linear" schedule (constant for
+  ``n_epochs`` epochs, then linear decay to 0 over ``n_epochs_decay`` epochs).
+
+With ``discriminator=None`` (or ``lambda_gan=0``) it trains G with L1 alone.
+
+Note on step counts: under manual optimisation Lightning's ``global_step`` counts optimizer
+steps, so with a discriminator each batch advances it by 2 (``trainer.max_steps`` likewise).
+
+Validation logs, for the output and for the noisy input (the baseline to beat), L1, SMAPE and
+PSNR against the clean render over the pixels covered in either render (the shards' mask;
+conventions in :mod:`pix2pix.metrics`): ``val/{l1,smape,psnr}`` and ``val/noisy_{...}``, the
+full-image ``val/smape_full`` / ``val/noisy_smape_full``, and ``val/smape_reduction`` =
+1 - smape(output) / smape(noisy) (the issue's target: >= 0.3). Each validation also writes an image
+grid (rows: noisy | output | clean) as PNG into ``<run dir>/val_grids/`` and sends it to the
+loggers that take images (TensorBoard, W&B).
+
+Checkpoints carry ``checkpoint["dss_pix2pix"]``: the generator/discriminator constructor configs
+(JSON) and what the model knows about its data (noise level, render settings, sizes), so that a
+checkpoint can be rebuilt and exported without Hydra (:func:`load_generator`).
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ._io import atomic_write_bytes
+from .metrics import l1 as l1_metric
+from .metrics import psnr as psnr_metric
+from .metrics import smape as smape_metric
+from .networks import PatchDiscriminator, ResNetGenerator
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "CHECKPOINT_KEY", "make_grid"]
+
+CHECKPOINT_KEY = "dss_pix2pix"
+METRIC_NAMES = ("l1", "smape", "psnr")
+
+
+class LinearDecay:
+    """pix2pix "linear" LR factor: 1 for ``n_epochs`` epochs, then linearly to 0 over
+    ``n_epochs_decay`` epochs (a picklable callable so LambdaLR can save it)."""
+
+    def __init__(self, n_epochs: int, n_epochs_decay: int):
+        self.n_epochs = int(n_epochs)
+        self.n_epochs_decay = max(1, int(n_epochs_decay))
+
+    def __call__(self, epoch: int) -> float:
+        return 1.0 - max(0, epoch + 1 - self.n_epochs) / float(self.n_epochs_decay + 1)
+
+
+def make_grid(noisy: torch.Tensor, output: torch.Tensor, clean: torch.Tensor) -> np.ndarray:
+    """Rows noisy | output | clean for each image: (B,3,H,W) x3 -> (B*H, 3*W, 3) uint8 in [0,255]."""
+    rows = torch.cat([noisy, output, clean], dim=3)  # (B, 3, H, 3W)
+    img = torch.cat(list(rows), dim=1)  # (3, B*H, 3W)
+    img = img.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy()
+    return (img * 255.0 + 0.5).astype(np.uint8)
+
+
+def _png_bytes(img: np.ndarray) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.image
+
+    buf = io.BytesIO()
+    matplotlib.image.imsave(buf, img, format="png")
+    return buf.getvalue()
+
+
+class Pix2PixModule(L.LightningModule):
+    """Pix2Pix GAN training for image denoising.
+
+    Args:
+        generator: an image-to-image network, (B,3,H,W) -> (B,3,H,W) (a ResNetGenerator).
+        discriminator: conditional discriminator on cat(noisy, image) (6 channels), or None.
+        lambda_l1: weight of the L1 term (pix2pix default 100).
+        lambda_gan: weight of the LSGAN term of the generator loss.
+        lr, lr_d: Adam learning rates of G and D (lr_d defaults to lr).
+        betas: Adam betas.
+        lr_schedule: ``"constant"`` or ``"linear"`` (pix2pix's linear decay).
+        n_epochs, n_epochs_decay: epochs at the full rate, epochs of linear decay; None splits
+            ``trainer.max_epochs`` in halves.
+        train_crop_size: the image size the model is trained at (recorded into exports).
+        num_grid_images: images per validation grid.
+        name: preset name (recorded into exports).
+    """
+
+    def __init__(
+        self,
+        generator: nn.Module,
+        discriminator: nn.Module | None = None,
+        lambda_l1: float = 100.0,
+        lambda_gan: float = 1.0,
+        lr: float = 2e-4,
+        lr_d: float | None = None,
+        betas: tuple[float, float] = (0.5, 0.999),
+        lr_schedule: str = "constant",
+        n_epochs: int | None = None,
+        n_epochs_decay: int | None = None,
+        train_crop_size: int | None = None,
+        num_grid_images: int = 4,
+        name: str = "custom",
+    ):
+        super().__init__()
+        if lr_schedule not in ("constant", "linear"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'linear', got {lr_schedule!r}")
+        # plain Python values only: checkpoints must load with torch.load(weights_only=True)
+        betas = (float(betas[0]), float(betas[1]))
+        self.save_hyperparameters(ignore=["generator", "discriminator"])
+        self.automatic_optimization = False
+        self.generator = generator
+        self.discriminator = discriminator
+        self.data_info: dict[str, Any] = {}
+        self._val_sums: dict[str, torch.Tensor] = {}
+        self._val_grid: tuple[torch.Tensor, ...] | None = None
+        self._throughput = [0, 0.0]  # images, seconds in this epoch's training steps
+
+    @property
+    def uses_gan(self) -> bool:
+        return self.discriminator is not None and self.hparams.lambda_gan > 0
+
+    def forward(self, noisy: torch.Tensor) -> torch.Tensor:
+        return self.generator(noisy)
+
+    # ---- optimisation --------------------------------------------------------------------------
+    def configure_optimizers(self):
+        hp = self.hparams
+        betas = tuple(float(b) for b in hp.betas)
+        opts = [torch.optim.Adam(self.generator.parameters(), lr=hp.lr, betas=betas)]
+        if self.discriminator is not None:
+            opts.append(torch.optim.Adam(self.discriminator.parameters(),
+                                         lr=hp.lr_d or hp.lr, betas=betas))
+        if hp.lr_schedule == "constant":
+            return opts
+        n, nd = hp.n_epochs, hp.n_epochs_decay
+        if n is None or nd is None:
+            max_epochs = self.trainer.max_epochs
+            if not max_epochs or max_epochs < 1:
+                raise ValueError(
+                    "lr_schedule='linear' needs trainer.max_epochs >= 1, or model.n_epochs and "
+                    "model.n_epochs_decay (use lr_schedule='constant' for time-bounded runs)"
+                )
+            n = max_epochs // 2 if n is None else n
+            nd = max(1, max_epochs - n) if nd is None else nd
+        scheds = [torch.optim.lr_scheduler.LambdaLR(o, LinearDecay(n, nd)) for o in opts]
+        return opts, scheds
+
+    def _opts(self) -> list:
+        opts = self.optimizers()
+        return list(opts) if isinstance(opts, list | tuple) else [opts]
+
+    def _d_input(self, noisy: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        return torch.cat([noisy, image], dim=1)
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        t0 = time.perf_counter()
+        noisy, clean = batch["noisy"], batch["clean"]
+        opts = self._opts()
+        opt_g = opts[0]
+        fake = self.generator(noisy)
+        logs: dict[str, torch.Tensor] = {}
+        if self.uses_gan:
+            opt_d = opts[1]
+            self.toggle_optimizer(opt_d)
+            pred_real = self.discriminator(self._d_input(noisy, clean))
+            pred_fake = self.discriminator(self._d_input(noisy, fake.detach()))
+            loss_d = 0.5 * (F.mse_loss(pred_real, torch.ones_like(pred_real))
+                            + F.mse_loss(pred_fake, torch.zeros_like(pred_fake)))
+            opt_d.zero_grad(set_to_none=True)
+            self.manual_backward(loss_d)
+            opt_d.step()
+            self.untoggle_optimizer(opt_d)
+            logs["train/loss_d"] = loss_d.detach()
+
+        self.toggle_optimizer(opt_g)
+        loss_l1 = F.l1_loss(fake, clean)
+        loss_g = self.hparams.lambda_l1 * loss_l1
+        if self.uses_gan:
+            pred = self.discriminator(self._d_input(noisy, fake))
+            loss_gan = F.mse_loss(pred, torch.ones_like(pred))
+            loss_g = loss_g + self.hparams.lambda_gan * loss_gan
+            logs["train/loss_g_gan"] = loss_gan.detach()
+        opt_g.zero_grad(set_to_none=True)
+        self.manual_backward(loss_g)
+        opt_g.step()
+        self.untoggle_optimizer(opt_g)
+        logs["train/loss_g"] = loss_g.detach()
+        logs["train/l1"] = loss_l1.detach()
+        self.log_dict(logs, on_step=True, on_epoch=True, batch_size=noisy.shape[0])
+        self.log("train/l1_step", loss_l1.detach(), on_step=True, on_epoch=False,
+                 prog_bar=True, batch_size=noisy.shape[0])
+        self._throughput[0] += noisy.shape[0]
+        self._throughput[1] += time.perf_counter() - t0
+        return loss_g.detach()
+
+    def on_train_epoch_start(self) -> None:
+        # Lightning calls set_epoch only on samplers; our iterable stream reshuffles per epoch.
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is not None and hasattr(dm, "set_epoch"):
+            dm.set_epoch(self.current_epoch)
+        self._throughput = [0, 0.0]
+
+    def on_train_epoch_end(self) -> None:
+        n, secs = self._throughput
+        if secs > 0:
+            self.log("train/images_per_s", n / secs, on_step=False, on_epoch=True)
+        if self.hparams.lr_schedule != "constant":
+            for s in self.lr_schedulers() if isinstance(self.lr_schedulers(), list) else [self.lr_schedulers()]:
+                s.step()
+
+    # ---- validation ----------------------------------------------------------------------------
+    def on_validation_epoch_start(self) -> None:
+        self._val_sums = {}
+        self._val_grid = None
+
+    def _accumulate(self, key: str, value: torch.Tensor, weight: float) -> None:
+        v = value.detach().double() * weight
+        self._val_sums[key] = self._val_sums.get(key, torch.zeros((), dtype=torch.float64, device=v.device)) + v
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        noisy, clean = batch["noisy"], batch["clean"]
+        mask = batch.get("mask")
+        out = self.generator(noisy)
+        b = noisy.shape[0]
+        # masked l1/smape pool pixels over the whole split: weight each batch by its pixel count
+        npx = float(mask.sum()) if mask is not None else float(b * noisy.shape[2] * noisy.shape[3])
+        for prefix, img in (("", out), ("noisy_", noisy)):
+            self._accumulate(prefix + "l1", l1_metric(img, clean, mask), npx)
+            self._accumulate(prefix + "smape", smape_metric(img, clean, mask), npx)
+            self._accumulate(prefix + "psnr", psnr_metric(img, clean, mask), b)
+            self._accumulate(prefix + "smape_full", smape_metric(img, clean), b)
+        self._accumulate("pixels", torch.ones((), device=noisy.device), npx)
+        self._accumulate("count", torch.ones((), device=noisy.device), b)
+        k = self.hparams.num_grid_images
+        if k > 0 and (self._val_grid is None or self._val_grid[0].shape[0] < k):
+            take = (noisy[:k], out[:k], clean[:k])
+            if self._val_grid is None:
+                self._val_grid = tuple(t.detach().cpu() for t in take)
+            else:
+                need = k - self._val_grid[0].shape[0]
+                self._val_grid = tuple(torch.cat([g, t[:need].detach().cpu()]) for g, t in
+                                       zip(self._val_grid, take))
+
+    def on_validation_epoch_end(self) -> None:
+        if not self._val_sums:
+            return
+        sums = {k: self.trainer.strategy.reduce(v, reduce_op="sum") for k, v in self._val_sums.items()}
+        count = sums.pop("count").clamp_min(1)
+        pixels = sums.pop("pixels").clamp_min(1)
+        means = {k: float(v / (count if k.endswith(("psnr", "_full")) else pixels))
+                 for k, v in sums.items()}
+        means["smape_reduction"] = 1.0 - means["smape"] / max(means["noisy_smape"], 1e-12)
+        means["l1_reduction"] = 1.0 - means["l1"] / max(means["noisy_l1"], 1e-12)
+        means["psnr_gain"] = means["psnr"] - means["noisy_psnr"]
+        self.log_dict({f"val/{k}": v for k, v in means.items()}, on_epoch=True, sync_dist=False)
+        if not self.trainer.sanity_checking and self._val_grid is not None:
+            self._save_grid()
+
+    def _save_grid(self) -> None:
+        if self.trainer.global_rank != 0:
+            return
+        grid = make_grid(*self._val_grid)
+        step, epoch = self.global_step, self.current_epoch
+        # trainer.validate() after fit (dss-train validates the best checkpoint) gets its own name
+        stem = f"epoch{epoch:03d}-step{step:07d}" if self.trainer.state.fn == "fit" else f"validate-step{step:07d}"
+        path = Path(self.trainer.default_root_dir) / "val_grids" / f"{stem}.png"
+        atomic_write_bytes(path, _png_bytes(grid))
+        for logger in self.loggers:
+            try:
+                if hasattr(logger, "log_image"):  # W&B
+                    logger.log_image(key="val/grid", images=[grid],
+                                     caption=["rows: noisy | output | clean"])
+                elif hasattr(getattr(logger, "experiment", None), "add_image"):  # TensorBoard
+                    logger.experiment.add_image("val/grid", grid, step, dataformats="HWC")
+            except Exception as e:  # a logger failing to take an image must not stop training
+                log.warning("could not log the validation grid to %s: %s", type(logger).__name__, e)
+
+    # ---- checkpoints ---------------------------------------------------------------------------
+    def on_fit_start(self) -> None:
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is not None and hasattr(dm, "info"):
+            self.data_info = dm.info()
+
+    def export_info(self) -> dict[str, Any]:
+        """Everything needed to rebuild G and describe it (JSON-able)."""
+        return {
+            "version": 1,
+            "name": self.hparams.name,
+            "generator_class": f"{type(self.generator).__module__}.{type(self.generator).__qualname__}",
+            "generator": self.generator.config() if hasattr(self.generator, "config") else None,
+            "discriminator": (self.discriminator.config()
+                              if self.discriminator is not None and hasattr(self.discriminator, "config")
+                              else None),
+            "train_crop_size": self.hparams.train_crop_size,
+            "data": dict(self.data_info),
+        }
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[CHECKPOINT_KEY] = self.export_info()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        info = checkpoint.get(CHECKPOINT_KEY) or {}
+        self.data_info = dict(info.get("data") or {})
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, map_location: str = "cpu") -> Pix2PixModule:
+        """Rebuild the module (G, D, hyperparameters, weights) from a checkpoint, without Hydra."""
+        ckpt = _read_checkpoint(path, map_location)
+        info = ckpt[CHECKPOINT_KEY]
+        gen = ResNetGenerator.from_config(info["generator"])
+        disc = PatchDiscriminator.from_config(info["discriminator"]) if info.get("discriminator") else None
+        return cls.load_from_checkpoint(path, map_location=map_location, generator=gen,
+                                        discriminator=disc, weights_only=False)
+
+
+def _read_checkpoint(path: str | Path, map_location: str = "cpu") -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as e:
+        raise ValueError(f"{path}: not a readable PyTorch checkpoint ({e})") from e
+    if not isinstance(ckpt, dict) or CHECKPOINT_KEY not in ckpt or "state_dict" not in ckpt:
+        raise ValueError(
+            f"{path}: not a dss pix2pix checkpoint (no '{CHECKPOINT_KEY}' entry); it must come "
+            "from dss-train"
+        )
+    return ckpt
+
+
+def load_generator(path: str | Path, map_location: str = "cpu") -> tuple[ResNetGenerator, dict[str, Any]]:
+    """The trained generator (eval mode) and the checkpoint's ``dss_pix2pix`` info from a
+    Lightning checkpoint written by ``dss-train``; info gains ``epoch`` and ``global_step``."""
+    ckpt = _read_checkpoint(path, map_location)
+    info = dict(ckpt[CHECKPOINT_KEY])
+    if not info.get("generator"):
+        raise ValueError(f"{path}: the checkpoint does not describe its generator")
+    gen = ResNetGenerator.from_config(info["generator"])
+    state = {k[len("generator."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("generator.")}
+    try:
+        gen.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"{path}: generator weights do not match its config ({e})") from e
+    info["epoch"] = ckpt.get("epoch")
+    info["global_step"] = ckpt.get("global_step")
+    return gen.eval(), info

@@ -1,0 +1,268 @@
+"""Pix2Pix networks of the DSS paper (appendix "Denoising Pix2Pix").
+
+- :class:`ResNetGenerator`: 7x7 stem, 2 stride-2 downs, ``n_blocks`` residual blocks, 2 stride-2
+  up-convolutions each followed by a 3x3 convolution (against checkerboard artefacts),
+  reflection padding, pixel-wise normalisation, **no final tanh** (unbounded output).
+- :class:`PatchDiscriminator`: the 70x70 PatchGAN C64-C128-C256-C512-C1 (for ``ndf=64``,
+  ``n_layers=3``), conditional on the noisy input (it sees ``cat(noisy, image)``).
+- :func:`init_xavier`: Xavier initialisation as pix2pix's ``init_type="xavier"``.
+
+Images are (B, C, H, W) float32. The generator takes renders in their natural range (about
+[0, 1], unbounded in principle) and returns images in the same range: the input normalisation
+``(x - input_mean) / input_std`` and its inverse are part of the module (and so of the ONNX
+export), so callers never normalise by hand.
+
+Residual or direct prediction (``residual`` flag): with ``residual=True`` the network predicts
+a correction added to the (normalised) noisy input, so it starts from the identity, which is
+already the noisy baseline; it only has to learn the small difference (DnCNN, Zhang et al.
+2017), which trains markedly faster on a CPU budget. The paper's model predicts the clean image
+directly (``residual=False``), which is the ``paper`` preset; the CPU presets use the residual.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from .blocks import Down, Head, ResidualBlock, Stem, Up
+from .norms import NormFactory, PixelNorm, build_norm, norm_spec
+
+__all__ = ["ResNetGenerator", "PatchDiscriminator", "init_xavier", "SIZE_MULTIPLE"]
+
+#: H and W of generator inputs must be multiples of this (two stride-2 downsamplings).
+SIZE_MULTIPLE = 4
+#: the smallest H, W the generator accepts (reflection padding at 1/4 resolution needs >= 2 px).
+MIN_SIZE = 8
+
+
+def init_xavier(module: nn.Module, gain: float = 0.02) -> None:
+    """Xavier-normal weights (std = gain * sqrt(2 / (fan_in + fan_out))), zero biases.
+
+    Matches pix2pix's ``init_weights(net, "xavier", init_gain=0.02)``, which the DSS paper uses
+    ("default parameters of the Pix2Pix implementation" + Xavier). Affine norm layers get
+    weights ~ N(1, gain) and zero bias, as there.
+    """
+
+    def _init(m: nn.Module) -> None:
+        if isinstance(m, nn.Conv2d | nn.ConvTranspose2d | nn.Linear):
+            nn.init.xavier_normal_(m.weight, gain=gain)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.modules.batchnorm._NormBase) and m.affine:
+            nn.init.normal_(m.weight, 1.0, gain)
+            nn.init.zeros_(m.bias)
+
+    module.apply(_init)
+
+
+def check_image_batch(x: torch.Tensor, channels: int, multiple: int = SIZE_MULTIPLE,
+                      min_size: int = MIN_SIZE, who: str = "generator") -> None:
+    """Raise ValueError unless ``x`` is (B, channels, H, W) with H, W multiples of ``multiple``."""
+    if x.dim() != 4:
+        raise ValueError(f"{who}: expected a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
+    b, c, h, w = x.shape
+    if c != channels:
+        raise ValueError(
+            f"{who}: expected {channels} channels in dim 1 of (B, C, H, W), got {c} "
+            f"(shape {tuple(x.shape)}; channels-last images must be permuted first)"
+        )
+    if h % multiple or w % multiple or h < min_size or w < min_size:
+        raise ValueError(
+            f"{who}: height and width must be multiples of {multiple} and at least {min_size}, "
+            f"got {h}x{w} (pad or crop the image, e.g. to "
+            f"{max(min_size, h // multiple * multiple)}x{max(min_size, w // multiple * multiple)})"
+        )
+
+
+def _checks_enabled() -> bool:
+    # Python-level shape checks would be frozen into a traced/exported graph as constants.
+    return not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+
+
+class ResNetGenerator(nn.Module):
+    """ResNet image-to-image generator (Johnson et al. 2016 / pix2pix, as adapted by DSS).
+
+    Args:
+        in_channels, out_channels: image channels (3 for RGB renders).
+        ngf: width of the first layer; the downs double it twice (ngf, 2 ngf, 4 ngf).
+        n_blocks: number of residual blocks at 1/4 resolution (paper: 9).
+        norm_layer: callable ``norm_layer(num_features) -> nn.Module`` (default PixelNorm).
+        residual: predict a correction added to the input (True) or the image (False, paper).
+        input_mean, input_std: normalisation ``(x - mean) / std`` applied inside the module
+            (and inverted on the output); 0.5/0.5 maps renders in [0, 1] to [-1, 1] as pix2pix.
+        init_gain: Xavier gain. pix2pix's default is 0.02 (the ``paper`` preset). Every conv
+            here is followed by a normalisation, which makes it scale-invariant, so Adam's
+            effective step on it is about lr / |w|: with gain 0.02 that is ~100% of the weights per
+            step at lr 1e-3 and the network stalls for a long time (measured: ngf 16, 2 blocks,
+            32 px, Adam 1e-3, learning to copy its input: L1 stays at 0.25 for 300 steps with
+            gain 0.02, falls to 0.10 with gain 1.0). The CPU presets use 1.0 (standard Glorot).
+        zero_init_head: zero the last convolution's weights so that a residual generator starts
+            as the exact identity (the noisy baseline); default: ``residual``.
+
+    Shapes: (B, in_channels, H, W) -> (B, out_channels, H, W) for H, W multiples of 4 (>= 8);
+    other sizes raise ValueError. The output is unbounded (no tanh).
+    """
+
+    size_multiple = SIZE_MULTIPLE
+
+    def __init__(
+        self,
+        in_channels: int = 3,
+        out_channels: int = 3,
+        ngf: int = 64,
+        n_blocks: int = 9,
+        norm_layer: NormFactory = PixelNorm,
+        residual: bool = False,
+        input_mean: float = 0.5,
+        input_std: float = 0.5,
+        init_gain: float = 0.02,
+        zero_init_head: bool | None = None,
+    ):
+        super().__init__()
+        if zero_init_head is None:
+            zero_init_head = residual
+        if n_blocks < 0 or ngf < 1:
+            raise ValueError(f"need ngf >= 1 and n_blocks >= 0, got ngf={ngf}, n_blocks={n_blocks}")
+        if residual and in_channels != out_channels:
+            raise ValueError("residual=True needs in_channels == out_channels")
+        if input_std <= 0:
+            raise ValueError(f"input_std must be > 0, got {input_std}")
+        self._config: dict[str, Any] = {
+            "in_channels": int(in_channels),
+            "out_channels": int(out_channels),
+            "ngf": int(ngf),
+            "n_blocks": int(n_blocks),
+            "norm_layer": norm_spec(norm_layer),
+            "residual": bool(residual),
+            "input_mean": float(input_mean),
+            "input_std": float(input_std),
+            "init_gain": float(init_gain),
+            "zero_init_head": bool(zero_init_head),
+        }
+        self.in_channels = in_channels
+        self.residual = residual
+        self.input_mean = float(input_mean)
+        self.input_std = float(input_std)
+
+        self.stem = Stem(in_channels, ngf, norm_layer)
+        self.down1 = Down(ngf, 2 * ngf, norm_layer)
+        self.down2 = Down(2 * ngf, 4 * ngf, norm_layer)
+        self.blocks = nn.Sequential(*[ResidualBlock(4 * ngf, norm_layer) for _ in range(n_blocks)])
+        self.up1 = Up(4 * ngf, 2 * ngf, norm_layer)
+        self.up2 = Up(2 * ngf, ngf, norm_layer)
+        self.head = Head(ngf, out_channels)
+        init_xavier(self, init_gain)
+        if zero_init_head:
+            # the correction starts at exactly 0 (output == input), whatever init_gain is
+            nn.init.zeros_(self.head[1].weight)
+
+    def config(self) -> dict[str, Any]:
+        """JSON-able constructor arguments (norm layer as import path + kwargs)."""
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
+
+    @classmethod
+    def from_config(cls, config: dict[str, Any]) -> ResNetGenerator:
+        """Rebuild an (untrained) generator from :meth:`config` output."""
+        kwargs = dict(config)
+        kwargs["norm_layer"] = build_norm(kwargs["norm_layer"])
+        return cls(**kwargs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if _checks_enabled():
+            check_image_batch(x, self.in_channels, who=type(self).__name__)
+        xn = (x - self.input_mean) / self.input_std
+        y = self.stem(xn)
+        y = self.down2(self.down1(y))
+        y = self.blocks(y)
+        y = self.up2(self.up1(y))
+        y = self.head(y)
+        if self.residual:
+            y = y + xn
+        return y * self.input_std + self.input_mean
+
+
+class PatchDiscriminator(nn.Module):
+    """Conditional PatchGAN discriminator: C64-C128-C256-C512-C1 for ``ndf=64, n_layers=3``.
+
+    Ck = 4x4 convolution with k filters, norm (not on the first layer), LeakyReLU(0.2); the
+    first ``n_layers`` have stride 2, then one stride-1 layer and a stride-1 1-channel output.
+    With ``n_layers=3`` each output value sees a 70x70 input patch.
+
+    Args:
+        in_channels: channels of ``cat(condition, image)`` (6 for RGB pairs).
+        ndf: filters of the first layer (doubles per layer, capped at 8 ndf).
+        n_layers: number of stride-2 layers (3 -> 70x70 patches).
+        norm_layer: callable ``norm_layer(num_features) -> nn.Module``.
+        init_gain: Xavier gain.
+
+    Shapes: (B, in_channels, H, W) -> (B, 1, H/2^n - 2, W/2^n - 2) raw scores (LSGAN: no
+    sigmoid), e.g. 256x256 -> 30x30.
+    """
+
+    def __init__(
+        self,
+        in_channels: int = 6,
+        ndf: int = 64,
+        n_layers: int = 3,
+        norm_layer: NormFactory = nn.InstanceNorm2d,
+        init_gain: float = 0.02,
+    ):
+        super().__init__()
+        if n_layers < 1 or ndf < 1:
+            raise ValueError(f"need ndf >= 1 and n_layers >= 1, got ndf={ndf}, n_layers={n_layers}")
+        self._config: dict[str, Any] = {
+            "in_channels": int(in_channels),
+            "ndf": int(ndf),
+            "n_layers": int(n_layers),
+            "norm_layer": norm_spec(norm_layer),
+            "init_gain": float(init_gain),
+        }
+        self.in_channels = in_channels
+        self.n_layers = n_layers
+        layers: list[nn.Module] = [
+            nn.Conv2d(in_channels, ndf, kernel_size=4, stride=2, padding=1),
+            nn.LeakyReLU(0.2, inplace=True),
+        ]
+        ch = ndf
+        for i in range(1, n_layers + 1):
+            out = ndf * min(2**i, 8)
+            stride = 2 if i < n_layers else 1
+            layers += [
+                nn.Conv2d(ch, out, kernel_size=4, stride=stride, padding=1),
+                norm_layer(out),
+                nn.LeakyReLU(0.2, inplace=True),
+            ]
+            ch = out
+        layers.append(nn.Conv2d(ch, 1, kernel_size=4, stride=1, padding=1))
+        self.model = nn.Sequential(*layers)
+        init_xavier(self, init_gain)
+
+    @property
+    def receptive_field(self) -> int:
+        """Side of the input patch each output value sees (70 for n_layers=3)."""
+        rf = 1
+        for k, s in reversed([(4, 2)] * self.n_layers + [(4, 1), (4, 1)]):
+            rf = (rf - 1) * s + k
+        return rf
+
+    @property
+    def min_input_size(self) -> int:
+        """Smallest H, W giving a >= 2x2 map before the last layer (instance norm needs > 1 px)."""
+        return 2**self.n_layers * 3
+
+    def config(self) -> dict[str, Any]:
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
+
+    @classmethod
+    def from_config(cls, config: dict[str, Any]) -> PatchDiscriminator:
+        kwargs = dict(config)
+        kwargs["norm_layer"] = build_norm(kwargs["norm_layer"])
+        return cls(**kwargs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if _checks_enabled():
+            check_image_batch(x, self.in_channels, multiple=1, min_size=self.min_input_size,
+                              who=type(self).__name__)
+        return self.model(x)

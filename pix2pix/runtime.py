@@ -1,0 +1,173 @@
+"""Run an exported DSS denoiser with onnxruntime (no PyTorch needed).
+
+>>> den = OnnxDenoiser("denoiser_1pct.onnx", intra_op_num_threads=2)
+>>> den.noise_level, den.render_image_size
+>>> clean = den(noisy)                   # (B, 3, H, W) float32, H and W multiples of 4
+>>> clean_views = den.denoise_views(v)   # (V, H, W, 3), the dss image layout
+
+Errors are explicit: a missing file (FileNotFoundError), a file that is not ONNX or is an ONNX
+model but not one of our denoisers (:class:`DenoiserFormatError`, a ValueError, naming the
+file), a wrong channel count or a size that is not a multiple of 4 (ValueError naming the
+shape; ``pad=True`` pads by reflection and crops back instead).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["OnnxDenoiser", "DenoiserFormatError", "DENOISER_KIND"]
+
+DENOISER_KIND = "dss-pix2pix-denoiser"  # same as pix2pix.export.DENOISER_KIND (kept torch-free)
+_JSON_KEYS = ("dss.train_image_size", "dss.render_image_size", "dss.render_settings",
+              "dss.input_normalization", "dss.generator", "dss.noise_level", "dss.size_multiple",
+              "dss.channels", "dss.epoch", "dss.global_step")
+
+
+class DenoiserFormatError(ValueError):
+    """The file is not an ONNX model, or not a DSS pix2pix denoiser."""
+
+
+class OnnxDenoiser:
+    """onnxruntime session over an exported denoiser.
+
+    Args:
+        path: the ``.onnx`` file written by ``dss-export``.
+        intra_op_num_threads: threads inside an operator (None: onnxruntime's default, all cores).
+        inter_op_num_threads: threads across operators (1: sequential execution).
+        max_batch: views per ``session.run`` call (bounds peak memory).
+        providers: onnxruntime execution providers (default CPU).
+
+    Attributes:
+        metadata: the file's ``dss.*`` metadata, JSON values parsed.
+        channels, size_multiple, noise_level, train_image_size, render_image_size,
+        render_settings: convenience views of ``metadata``.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        intra_op_num_threads: int | None = None,
+        inter_op_num_threads: int | None = 1,
+        max_batch: int = 8,
+        providers: list[str] | None = None,
+    ):
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"denoiser model {self.path} does not exist")
+        if max_batch < 1:
+            raise ValueError(f"max_batch must be >= 1, got {max_batch}")
+        self.max_batch = int(max_batch)
+        opts = ort.SessionOptions()
+        if intra_op_num_threads:
+            opts.intra_op_num_threads = int(intra_op_num_threads)
+        if inter_op_num_threads:
+            opts.inter_op_num_threads = int(inter_op_num_threads)
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(
+                str(self.path), sess_options=opts, providers=providers or ["CPUExecutionProvider"]
+            )
+        except Exception as e:  # InvalidProtobuf, Fail, ... (onnxruntime's own classes)
+            raise DenoiserFormatError(f"{self.path}: not a loadable ONNX model ({e})") from e
+        raw = dict(self.session.get_modelmeta().custom_metadata_map)
+        kind = raw.get("dss.kind")
+        if kind != DENOISER_KIND:
+            raise DenoiserFormatError(
+                f"{self.path}: an ONNX model, but not a DSS pix2pix denoiser (metadata dss.kind = "
+                f"{kind!r}, expected {DENOISER_KIND!r}); export one from a dss-train checkpoint "
+                "with dss-export"
+            )
+        self.metadata: dict[str, Any] = {
+            k: (json.loads(v) if k in _JSON_KEYS else v) for k, v in raw.items()
+        }
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1 or len(inputs[0].shape) != 4:
+            raise DenoiserFormatError(
+                f"{self.path}: expected one (B, C, H, W) input, got "
+                f"{[(i.name, i.shape) for i in inputs]}"
+            )
+        self.input_name = inputs[0].name
+        self.channels = int(self.metadata.get("dss.channels", 3))
+        self.size_multiple = int(self.metadata.get("dss.size_multiple", 4))
+
+    # ---- metadata views ------------------------------------------------------------------------
+    @property
+    def noise_level(self) -> float | None:
+        return self.metadata.get("dss.noise_level")
+
+    @property
+    def train_image_size(self) -> list[int] | None:
+        return self.metadata.get("dss.train_image_size")
+
+    @property
+    def render_image_size(self) -> list[int] | None:
+        return self.metadata.get("dss.render_image_size")
+
+    @property
+    def render_settings(self) -> dict[str, Any]:
+        return self.metadata.get("dss.render_settings") or {}
+
+    def __repr__(self) -> str:
+        return (f"OnnxDenoiser({str(self.path)!r}, noise_level={self.noise_level}, "
+                f"render_image_size={self.render_image_size})")
+
+    # ---- inference -----------------------------------------------------------------------------
+    def _check(self, x: np.ndarray, pad: bool) -> None:
+        if x.ndim != 4:
+            raise ValueError(f"{self.path.name}: expected (B, C, H, W) images, got shape {x.shape}")
+        if x.shape[1] != self.channels:
+            hint = (" (this looks channels-last: use denoise_views for (V, H, W, C))"
+                    if x.shape[-1] == self.channels else "")
+            raise ValueError(
+                f"{self.path.name}: expected {self.channels} channels in dim 1 of (B, C, H, W), "
+                f"got shape {x.shape}{hint}"
+            )
+        h, w = x.shape[2:]
+        m = self.size_multiple
+        if not pad and (h % m or w % m):
+            raise ValueError(
+                f"{self.path.name}: height and width must be multiples of {m}, got {h}x{w} "
+                f"(render at a multiple of {m}, or pass pad=True to pad and crop back)"
+            )
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{self.path.name}: input images contain NaN or inf")
+
+    def __call__(self, images: Any, pad: bool = False) -> np.ndarray:
+        """Denoise (B, C, H, W) float images -> (B, C, H, W) float32, in batches of max_batch.
+
+        ``pad=True`` reflect-pads H and W up to a multiple of 4 and crops the result back.
+        """
+        x = np.asarray(images, dtype=np.float32)
+        self._check(x, pad)
+        h, w = x.shape[2:]
+        m = self.size_multiple
+        ph, pw = (-h) % m, (-w) % m
+        if ph or pw:
+            x = np.pad(x, ((0, 0), (0, 0), (0, ph), (0, pw)), mode="reflect")
+        outs = [
+            self.session.run(None, {self.input_name: np.ascontiguousarray(x[i:i + self.max_batch])})[0]
+            for i in range(0, x.shape[0], self.max_batch)
+        ]
+        y = np.concatenate(outs, axis=0) if outs else np.zeros_like(x)
+        return np.ascontiguousarray(y[:, :, :h, :w], dtype=np.float32)
+
+    def denoise_views(self, views: Any, pad: bool = False) -> np.ndarray:
+        """Denoise (V, H, W, C) images (the ``dss`` layout) -> (V, H, W, C) float32."""
+        v = np.asarray(views, dtype=np.float32)
+        if v.ndim != 4:
+            raise ValueError(f"{self.path.name}: expected (V, H, W, C) views, got shape {v.shape}")
+        if v.shape[-1] != self.channels:
+            raise ValueError(
+                f"{self.path.name}: expected {self.channels} channels in the last dim of "
+                f"(V, H, W, C), got shape {v.shape}"
+            )
+        return self(v.transpose(0, 3, 1, 2), pad=pad).transpose(0, 2, 3, 1).copy()

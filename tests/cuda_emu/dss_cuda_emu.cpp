@@ -1,0 +1,37 @@
+// dss/csrc/dss_cuda.cu compiled as C++ against the CPU stand-in of the CUDA runtime (tests only),
+// plus C entry points for ctypes: g++ -shared -fPIC -pthread -I tests/cuda_emu -I dss/csrc.
+#define DSS_EMU_KERNELS
+#include "cuda_runtime_api.h"
+#include "dss_cuda.cu"
+
+extern "C" {
+
+int emu_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts) {
+  return dss_cuda::launch_bin_count(packed, V, N, H, W, counts, nullptr);
+}
+
+int emu_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor, int32_t* list) {
+  return dss_cuda::launch_bin_fill(packed, V, N, H, W, cursor, list, nullptr);
+}
+
+int emu_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W, int K, const int64_t* bin_start,
+                        const int64_t* bin_end, const int32_t* list, float cutoff, float merge, const float* attrs,
+                        int C, const float* background, int32_t* idx, float* depth, float* rho, float* images,
+                        bool* mask) {
+  return dss_cuda::launch_rasterize_tiles(packed, V, N, H, W, K, bin_start, bin_end, list, cutoff, merge, attrs, C,
+                                          background, idx, depth, rho, images, mask, nullptr);
+}
+
+int emu_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth, const float* rho,
+                   const float* images, const float* grad, const float* R, const float* focal, const float* principal,
+                   const float* background, int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
+                   float cutoff, float merge, float eps, int mode, double* partial) {
+  return dss_cuda::launch_visibility(packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
+                                     V, N, H, W, K, C, window, stride, cutoff, merge, eps, mode, partial, nullptr);
+}
+
+int emu_reduce_views(const float* packed, const double* partial, int64_t V, int64_t N, float* out) {
+  return dss_cuda::launch_reduce_views(packed, partial, V, N, out, nullptr);
+}
+
+}  // extern "C"
