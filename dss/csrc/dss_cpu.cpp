@@ -253,6 +253,30 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const float* PP = principal.data_ptr<float>();
   const float* BG = background.data_ptr<float>();
 
+  // Per-pixel summary of the visible set (front depth, sum rho, sum rho w): most (point, pixel)
+  // pairs only add a splat to or remove a non-front splat from that set, which is O(C) then.
+  const int64_t S = C + 2;  // [d0, den, num_0..num_{C-1}]
+  std::vector<float> summ(V * H * W * S);
+  dynamic_for(V * H, 4, [&](int64_t row) {
+    for (int64_t j = 0; j < W; ++j) {
+      const int64_t g = row * W + j;
+      const int32_t* pi = I + g * K;
+      const float* pd = D + g * K;
+      const float* pr = Rh + g * K;
+      float* o = summ.data() + g * S;
+      o[0] = pi[0] >= 0 ? pd[0] : std::numeric_limits<float>::infinity();
+      float den = 0.f;
+      for (int64_t c = 0; c < C; ++c) o[2 + c] = 0.f;
+      for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= o[0] + merge; ++e) {
+        den += pr[e];
+        const float* a = A + ((g / (H * W)) * N + pi[e]) * C;
+        for (int64_t c = 0; c < C; ++c) o[2 + c] += pr[e] * a[c];
+      }
+      o[1] = den;
+    }
+  });
+  const float* SM = summ.data();
+
   dynamic_for(N, 16, [&](int64_t k) {
     double gw[3] = {0, 0, 0};
     for (int64_t v = 0; v < V; ++v) {
@@ -278,36 +302,46 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
           const int32_t* pi = I + g * K;
           const float* pd = D + g * K;
           const float* pr = Rh + g * K;
-          int nvalid = 0;
-          while (nvalid < K && pi[nvalid] >= 0) ++nvalid;
-          const float d0 = nvalid > 0 ? pd[0] : std::numeric_limits<float>::infinity();
-          bool k_visible = false;
-          for (int e = 0; e < nvalid; ++e)
-            if (pi[e] == (int32_t)k && pd[e] <= d0 + merge) k_visible = true;
-          float num[16], den = 0.f;
-          for (int64_t ch = 0; ch < C; ++ch) num[ch] = 0.f;
+          const float* sm = SM + g * S;
+          const float d0 = sm[0];
+          int ek = -1;  // position of k in the cache
+          for (int e = 0; e < K && pi[e] >= 0; ++e)
+            if (pi[e] == (int32_t)k) { ek = e; break; }
+          const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
+          float num[16], den;
           int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
           if (k_visible) {
             kase = 2;
-            float front = std::numeric_limits<float>::infinity();
-            for (int e = 0; e < nvalid; ++e)
-              if (pi[e] != (int32_t)k) { front = pd[e]; break; }
-            for (int e = 0; e < nvalid; ++e) {
-              if (pi[e] == (int32_t)k || !(pd[e] <= front + merge)) continue;
-              den += pr[e];
-              const float* a = A + (v * N + pi[e]) * C;
-              for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+            if (ek > 0) {  // the front stays: the visible set loses k only
+              den = sm[1] - pr[ek];
+              for (int64_t ch = 0; ch < C; ++ch) num[ch] = sm[2 + ch] - pr[ek] * wk[ch];
+              if (!(den > 0.f)) den = 0.f;
+            } else {  // k was the front: the next entry is the new front, may reveal others
+              den = 0.f;
+              for (int64_t ch = 0; ch < C; ++ch) num[ch] = 0.f;
+              if (K > 1 && pi[1] >= 0) {
+                const float lim = pd[1] + merge;
+                for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+                  den += pr[e];
+                  const float* a = A + (v * N + pi[e]) * C;
+                  for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+                }
+              }
             }
           } else {
-            kase = (nvalid == 0 || z <= d0 + merge) ? 0 : 1;
-            const float zf = kase == 0 ? std::min(z, d0) : d0;
+            kase = (pi[0] < 0 || z <= d0 + merge) ? 0 : 1;
             den = nk;
             for (int64_t ch = 0; ch < C; ++ch) num[ch] = nk * wk[ch];
-            for (int e = 0; e < nvalid; ++e) {
-              if (pi[e] == (int32_t)k || !(pd[e] <= zf + merge)) continue;
-              den += pr[e];
-              const float* a = A + (v * N + pi[e]) * C;
-              for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+            if (kase == 1 || z >= d0) {  // merges with the current visible set
+              den += sm[1];
+              for (int64_t ch = 0; ch < C; ++ch) num[ch] += sm[2 + ch];
+            } else if (pi[0] >= 0) {  // k becomes the front: entries beyond z + T drop out
+              const float lim = z + merge;
+              for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+                den += pr[e];
+                const float* a = A + (v * N + pi[e]) * C;
+                for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+              }
             }
           }
           const float* ip = IMG + g * C;
