@@ -15,7 +15,10 @@ batch of renders), positions are in units where the object's bounding-box diagon
 (the apps normalise), images are about 256 x 256. SGD with Nesterov momentum 0.9; normals are
 renormalised to unit length after every step; the gradient of each position coordinate is
 clipped to +-``clip_point_grad`` (0.01, the official implementation's default) so that a few
-points with huge visibility gradients do not jump across the scene.
+points with huge visibility gradients do not jump across the scene; normal gradients likewise to
++-``clip_normal_grad`` (the EWA weight's derivative is singular for edge-on splats, so pixels
+covered only by grazing splats give unbounded normal gradients). Non-finite gradient entries
+are zeroed.
 
 Regulariser weights: with ``regularizer_weighting="relative"`` (default) the weights gamma_p
 and gamma_r are what the paper's Appendix says they are for: the ratio of the mean per-point
@@ -69,6 +72,7 @@ class OptimizerConfig:
     momentum: float = 0.9
     nesterov: bool = True
     clip_point_grad: float | None = 0.01
+    clip_normal_grad: float | None = 1e-4
     image_loss: str = "smape"  # "smape" | "l1"
     projection_weight: float = 0.02
     repulsion_weight: float = 0.05
@@ -238,8 +242,13 @@ class MultiViewOptimizer:
             img_loss.backward()
         g_img = self.points.grad
         if g_img is not None:
-            g_img = g_img.detach().clone()
-            self._img_grad_scale = float(g_img.norm(dim=1).mean())
+            # Pixels covered only by near edge-on splats have a tiny total weight, and the
+            # gradient of the normalised sum w.r.t. their weights is huge there (the EWA weight's
+            # log-derivative is singular at grazing angles): sanitise and clip before use.
+            g_img = torch.nan_to_num(g_img.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+            if self.cfg.clip_point_grad:
+                g_img = g_img.clamp(-self.cfg.clip_point_grad, self.cfg.clip_point_grad)
+            self._img_grad_scale = float(g_img.double().norm(dim=1).mean())
             if not image_moves_points:
                 g_img = None
         occl = occlusion_counts(out).detach()
@@ -249,16 +258,14 @@ class MultiViewOptimizer:
         g = g_img if g_reg is None else (g_reg if g_img is None else g_img + g_reg)
         self.points.grad = g
         if g is not None:
-            if not torch.isfinite(g).all():
-                self._diverged("non-finite point gradients", saved)
-                return float("nan"), float("nan")
             if self.cfg.clip_point_grad:
                 g.clamp_(-self.cfg.clip_point_grad, self.cfg.clip_point_grad)
             self.opt_p.step()
         if move_normals and self.normals.grad is not None:
-            if not torch.isfinite(self.normals.grad).all():
-                self._diverged("non-finite normal gradients", saved)
-                return float("nan"), float("nan")
+            gn = torch.nan_to_num(self.normals.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            if self.cfg.clip_normal_grad:
+                gn = gn.clamp(-self.cfg.clip_normal_grad, self.cfg.clip_normal_grad)
+            self.normals.grad = gn
             self.opt_n.step()
         with torch.no_grad():
             self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
