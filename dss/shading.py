@@ -47,12 +47,14 @@ class SunLights:
     Attributes:
         directions: (3, 3) rows are camera-space unit vectors pointing *towards* each light.
         colors: (3, 3) rows are the RGB colour of each light.
-        ambient: added to every channel (times albedo).
+        ambient: added to every channel (times albedo). 0.3 as in the official implementation: it
+            keeps rendered channels away from 0, where SMAPE is discontinuous (|I - 0| / (|I| + eps)
+            jumps from 0 to 1 while its gradient vanishes).
     """
 
     directions: torch.Tensor = field(default_factory=_three_orthogonal_dirs)
     colors: torch.Tensor = field(default_factory=lambda: torch.eye(3))
-    ambient: float = 0.0
+    ambient: float = 0.3
 
     def __call__(self, points, normals, cameras: Cameras, albedo=None) -> torch.Tensor:
         n_cam = torch.einsum("vij,nj->vni", cameras.R, normals)  # (V,N,3)
