@@ -4,7 +4,7 @@ Four tiers:
 - ``nvcc``: the kernels compile with nvcc wherever nvcc exists (skipped without it; ~5 s).
 - emulated: the kernels' own code, built with the host compiler against a CPU stand-in of the
   CUDA runtime (tests/cuda_emu: real threads per block, a real barrier for __syncthreads), agrees
-  bit for bit with the CPU kernel. Runs everywhere there is a C++ compiler (~10 s).
+  equal to the CPU kernel (forward bit for bit, visibility gradient to rounding). Runs everywhere there is a C++ compiler (~10 s).
 - ``slow``: the torch glue compiles for CUDA (syntax check) and, in emulation, agrees with the
   CPU kernel through the same Python calls the GPU module gets (~1-2 min of compilation).
 - ``gpu``: the real CUDA module against the CPU kernel (run with ``pytest -m gpu``; skipped
@@ -292,7 +292,10 @@ def test_emulated_visibility_equals_cpu_kernel(name, mode, scenes, emulated, cpu
         ga = cpu_kernel.visibility_backward(*backward_args(s, cache, grad, mode, window, stride))
         gb = emulated.visibility_backward(*backward_args(s, cache, grad, mode, window, stride))
         assert ga.abs().sum() > 0
-        assert torch.equal(ga, gb), f"max difference {(ga - gb).abs().max().item()}"
+        # The CPU kernel sums the visible set per pixel once (a different float summation order
+        # than the CUDA kernel's per-pair loop), so the two agree to rounding, not bit for bit.
+        tol = 1e-4 * ga.abs().max().item()
+        assert torch.allclose(ga, gb, rtol=1e-3, atol=tol), f"max difference {(ga - gb).abs().max().item()}"
 
 
 def test_emulated_kernels_reject_bad_sizes(scenes, emulated):
@@ -358,7 +361,7 @@ def test_emulated_glue_equals_cpu_kernel(name, scenes, emulated_module, cpu_kern
     for mode in (0, 1):
         ga = cpu_kernel.visibility_backward(*backward_args(s, a, grad, mode))
         gb = emulated_module.visibility_backward(*backward_args(s, a, grad, mode))
-        assert torch.equal(ga, gb)
+        assert torch.allclose(ga, gb, rtol=1e-3, atol=1e-4 * ga.abs().max().item())
 
 
 @pytest.mark.slow

@@ -24,7 +24,7 @@ def _sphere_run(schedule="alternating", **kw):
     def ref(cams):
         return render(tp, tn, cams, st, shading=SUN).images
 
-    base = dict(cycles=2, normal_steps=2, point_steps=18, lr_points=2.0, lr_normals=200.0, momentum=0.0,
+    base = dict(cycles=2, normal_steps=2, point_steps=18, lr_points=2.0, lr_normals=200.0, momentum=0.0, lr_scale=1.0,
                 schedule=schedule, projection_weight=0.0, repulsion_weight=0.0)
     base.update(kw)
     opt = MultiViewOptimizer(sp, sn, ref, OptimizerConfig(**base), st, center=(0, 0, 0), radius=0.5,
@@ -63,7 +63,7 @@ def _grid_run(repulsion_weight):
     def ref(c):
         return render(tp, tn, c, st, shading="mask").images
 
-    cfg = OptimizerConfig(cycles=3, normal_steps=0, point_steps=20, lr_points=2.0, momentum=0.0, views=1,
+    cfg = OptimizerConfig(cycles=3, normal_steps=0, point_steps=20, lr_points=2.0, lr_scale=1.0, momentum=0.0, views=1,
                           projection_weight=0.0, repulsion_weight=repulsion_weight, image_loss="l1",
                           window_start=8, window_end=4)
     opt = MultiViewOptimizer(sp, sn, ref, cfg, st, sampler=Fixed(), shading="mask", image_size=64)
@@ -104,7 +104,7 @@ def test_projection_flattens_a_noisy_plane_during_normal_steps():
     for w in (0.0, 300.0):  # absolute weights: L_p is tiny in these units (see regularizers)
         cfg = OptimizerConfig(cycles=1, normal_steps=10, point_steps=0, lr_normals=0.0, momentum=0.0, views=1,
                               projection_weight=w, repulsion_weight=0.0, regularizer_weighting="absolute",
-                              lr_points=2.0, clip_point_grad=None)
+                              lr_points=2.0, lr_scale=1.0, clip_point_grad=None)
         opt = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=Fixed(), shading=SUN, image_size=32)
         res[w] = opt.run().points[:, 2].abs().mean().item()
     assert res[0.0] == pytest.approx(pts[:, 2].abs().mean().item())  # nothing moves without it

@@ -1,0 +1,423 @@
+"""``dss-denoise``: multi-view DSS point cloud denoising (paper "Application: point cloud denoising").
+
+    dss-denoise                                      # the shipped example (1% noise, ground truth)
+    dss-denoise noisy.ply                            # model picked from the estimated noise level
+    dss-denoise noisy.ply noise=0.003                # ... or from a hint (0.003 | 0.01)
+    dss-denoise noisy.ply reference=l0               # L0-DSS (image filter instead of the network)
+    dss-denoise noisy.ply reference.model=my.onnx    # any denoiser exported with dss-export
+    dss-denoise noisy.ply clean=clean.ply mesh=gt.ply   # ground truth: metrics in both protocols
+
+The noisy cloud (normals estimated when missing; rows with NaN/inf reported and dropped) is
+normalised to a unit bounding-box diagonal. Every cycle 12 views are sampled around it, the
+*input* is rendered with the denoiser's training render setting (the model file's metadata, or
+``conf/render/pairs.yaml`` for the filters), the renders are mapped through the reference
+generator (``conf/reference``), and DSS optimises normals and points to match them (the paper's
+local schedule: T_n = 19 normal steps, T_p = 1 point step, up to 16 cycles, projection and
+repulsion). Writes into the run directory: ``config.yaml``, the denoised PLY (input units),
+``before_after.png`` (rows: noisy | denoised | clean when given), ``references.png`` (last cycle:
+input renders | references | final renders), ``loss.png`` + ``loss.json``, ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from experiments.common import positional_to_override, run_dir, save_config, save_metrics
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run", "main", "EXAMPLE_DIR", "OutputExistsError", "load_input", "resolve_output"]
+
+EXAMPLE_DIR = Path(__file__).resolve().parent / "assets" / "example"
+EXAMPLE_FILES = {"input": "noisy_1pct.ply", "clean": "clean.ply", "mesh": "mesh.ply"}
+
+
+class OutputExistsError(FileExistsError):
+    """The output path exists and ``overwrite`` is false."""
+
+
+# ------------------------------------------------------------------------------ input / output
+def resolve_output(cfg: DictConfig, out: Path, default_name: str) -> Path:
+    """The output PLY path; refuses an existing file unless ``cfg.overwrite``."""
+    path = Path(cfg.output) if cfg.get("output") else out / default_name
+    if path.suffix.lower() != ".ply":
+        raise ValueError(f"output {path}: must be a .ply file")
+    if path.exists() and not cfg.get("overwrite", False):
+        raise OutputExistsError(f"output {path} already exists; refusing to replace it (pass overwrite=true)")
+    if path.is_dir():
+        raise IsADirectoryError(f"output {path} is a directory")
+    return path
+
+
+def _raw_row_count(path: Path) -> int | None:
+    import open3d as o3d
+
+    try:
+        return len(o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False).points)
+    except Exception:  # load_ply reports the real problem
+        return None
+
+
+def load_input(path: str | os.PathLike, nan_policy: str = "drop", normals_k: int = 16,
+               recompute_normals: bool = False) -> tuple[Any, dict]:
+    """Load the input cloud: (PointCloud with normals, report dict).
+
+    NaN/inf rows are counted and dropped (``nan_policy="drop"``) or refused (``"raise"``);
+    normals are estimated (PCA, ``normals_k`` neighbours, consistent orientation) when the file
+    has none or ``recompute_normals``.
+    """
+    from dss.pointcloud import PointCloudError, estimate_normals, load_ply
+
+    path = Path(path)
+    if not path.exists():
+        raise PointCloudError(f"input {path}: no such file")
+    raw = _raw_row_count(path)
+    cloud = load_ply(path, nan_policy=nan_policy, compute_normals=False)
+    had_normals = cloud.normals is not None
+    if not had_normals or recompute_normals:
+        if len(cloud) < max(3, normals_k):
+            raise PointCloudError(f"input {path}: {len(cloud)} points are too few (need at least {max(3, normals_k)})")
+        cloud = cloud.with_normals(estimate_normals(cloud.points, k=normals_k))
+    dropped = (raw - len(cloud)) if raw is not None else 0
+    if dropped:
+        log.warning("input %s: dropped %d rows with NaN/inf values", path, dropped)
+    report = {"path": str(path), "points": len(cloud), "rows_in_file": raw, "nan_rows_dropped": int(dropped),
+              "normals": "from file" if had_normals and not recompute_normals else f"estimated (PCA, k={normals_k})"}
+    return cloud, report
+
+
+def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0):
+    """(clean points (M, 3) float64 or None, mesh (V, F) or None, note)."""
+    from dss.metrics import load_mesh, load_points, sample_poisson_disk
+
+    m = load_mesh(mesh) if mesh else None
+    if clean:
+        return load_points(clean), m, "clean cloud from file"
+    if m is not None:
+        return sample_poisson_disk(m, n, seed), m, f"clean cloud: {n} Poisson-disk samples of the mesh (seed {seed})"
+    return None, None, "no ground truth"
+
+
+def score(pred: np.ndarray, clean: np.ndarray | None, mesh, protocols) -> dict:
+    """``{protocol: metrics dict}`` (see :mod:`dss.metrics`), empty without ground truth."""
+    from dss.metrics import evaluate
+
+    if clean is None:
+        return {}
+    return {pr: evaluate(pred, clean, mesh, pr).to_dict() for pr in protocols}
+
+
+def short_metrics(m: dict) -> dict:
+    keys = ("chamfer", "hausdorff", "p2m", "point_to_mesh")
+    return {pr: {k: d[k] for k in keys if d.get(k) is not None} for pr, d in m.items()}
+
+
+# ------------------------------------------------------------------------------ figures
+def figure_cameras(spec, n: int = 4, seed: int = 0, size: int | None = None):
+    """``n`` fixed cameras seeing the whole normalised object with the spec's field of view."""
+    from dss.cameras import fit_distance, focal_from_fov, fps_sphere_cameras
+
+    H, W = (size, size) if size else spec.image_size
+    dist = fit_distance(0.5, spec.fov_deg)  # a unit-diagonal box fits in a radius-0.5 sphere
+    return fps_sphere_cameras(n, (0.0, 0.0, 0.0), dist, focal_from_fov(spec.fov_deg, W), (H, W), jitter=0.0,
+                              generator=torch.Generator().manual_seed(seed), up=spec.up)
+
+
+def render_rows(clouds: list[tuple[torch.Tensor, torch.Tensor]], cams, settings, shading, backend="auto"):
+    from dss.render import render
+
+    rows = []
+    with torch.no_grad():
+        for p, n in clouds:
+            rows.append(render(p, n, cams, settings, shading=shading, backend=backend).images.clamp(0, 1))
+    return rows
+
+
+def save_image_rows(path: Path, rows: list[torch.Tensor], labels: list[str]) -> Path:
+    """Grid PNG: one row per entry of ``rows`` ((V, H, W, C) each), labelled on the left."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dss.io_utils import atomic_savefig
+
+    V = rows[0].shape[0]
+    fig, axes = plt.subplots(len(rows), V, figsize=(2.2 * V, 2.2 * len(rows)), squeeze=False)
+    for r, (imgs, label) in enumerate(zip(rows, labels)):
+        for v in range(V):
+            ax = axes[r][v]
+            ax.imshow(imgs[v].detach().cpu().numpy().clip(0, 1))
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if v == 0:
+                ax.set_ylabel(label, fontsize=10)
+    fig.tight_layout()
+    atomic_savefig(fig, path)
+    plt.close(fig)
+    return path
+
+
+def save_loss_curve(path: Path, history: dict, steps_per_cycle: int, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dss.io_utils import atomic_savefig
+
+    loss = np.asarray(history["loss"], np.float64)
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.plot(np.arange(1, len(loss) + 1), loss, lw=1)
+    for c in range(steps_per_cycle, len(loss), steps_per_cycle):
+        ax.axvline(c + 0.5, color="0.85", lw=0.5, zorder=0)
+    ax.set_xlabel("step (grey lines: new views and references)")
+    ax.set_ylabel("image loss (SMAPE)")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    atomic_savefig(fig, path)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------ pieces
+def optimizer_config(node, views: int, seed: int):
+    from dss.optimize import OptimizerConfig
+
+    d = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node or {})
+    known = set(OptimizerConfig.__dataclass_fields__)
+    bad = set(d) - known
+    if bad:
+        raise ValueError(f"optimizer: unknown keys {sorted(bad)}; known: {sorted(known)}")
+    return OptimizerConfig(**{**d, "views": int(views), "seed": int(seed)})
+
+
+def make_reference(cfg: DictConfig, noise: float | None):
+    """Instantiate ``cfg.reference``; an ``onnx`` generator with ``model: auto`` gets the shipped
+    model for ``noise``. Returns (generator, model selection note)."""
+    from hydra.utils import instantiate
+
+    from experiments.reference_generators import select_model
+
+    node = cfg.reference
+    note = None
+    kwargs = {}
+    if "model" in node and (node.model in (None, "auto")):
+        if noise is None:
+            raise ValueError("reference.model=auto needs a noise level (noise=... or the estimate)")
+        path, level = select_model(noise)
+        kwargs["model"] = str(path)
+        note = f"shipped model for noise {level:g} ({path.name}), chosen for noise {noise:.4g}"
+    return instantiate(node, **kwargs), note
+
+
+def progress_bar(total: int, desc: str, enabled: bool):
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit="step", disable=not enabled, dynamic_ncols=True)
+
+    def update(step: int, loss: float):
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    return bar, update
+
+
+def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor, generator, spec, desc: str,
+                   shading=None):
+    """Normalise, refine with ``generator`` under ``spec`` (cameras, renderer settings; shading:
+    the spec's point light unless given), de-normalise.
+
+    Returns (points, normals in input units, history, reference renderer, normalisation
+    (centre, scale, normalised input points), optimiser config)."""
+    from dss.pipeline import refine_with_reference
+    from dss.pointcloud import normalize_unit_diagonal
+    from experiments.reference_generators import SpecViewSampler
+
+    pn, center, scale = normalize_unit_diagonal(points)
+    ocfg = optimizer_config(cfg.optimizer, cfg.views, cfg.seed)
+    sampler = SpecViewSampler(spec, views=ocfg.views, seed=int(cfg.seed), jitter=ocfg.view_jitter)
+    shading = spec.point_light() if shading is None else shading
+    total = (ocfg.cycles + ocfg.error_aware_cycles) * (ocfg.normal_steps + ocfg.point_steps)
+    bar, update = progress_bar(total, desc, bool(cfg.get("progress", True)))
+    try:
+        result, ref = refine_with_reference(pn, normals, generator, config=ocfg, settings=spec.render_settings(),
+                                            shading=shading, sampler=sampler, backend=spec.backend, progress=update)
+    finally:
+        bar.close()
+    out_p = result.points * scale + center
+    return out_p, result.normals, result.history, ref, (center, scale, pn), ocfg
+
+
+def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list, ref, history: dict, ocfg,
+                  title: str, norm, shading=None) -> list[str]:
+    """before_after.png (a row per cloud of ``rows_pts``, in input units), references.png (last
+    cycle: input renders | references | result renders), loss.png / loss.json."""
+    from dss.io_utils import atomic_write_json
+
+    center, scale, _ = norm
+    fig_cfg = cfg.get("figures", {}) or {}
+    cams = figure_cameras(spec, int(fig_cfg.get("views", 4)), int(cfg.seed), fig_cfg.get("image_size"))
+    settings = spec.render_settings()
+    shading = spec.point_light() if shading is None else shading
+    clouds = [((p - center) / scale, n) for p, n in rows_pts]
+    rows = render_rows(clouds, cams, settings, shading, spec.backend)
+    written = [save_image_rows(out / "before_after.png", rows, labels).name]
+    if ref.last is not None:
+        from dss.render import render
+
+        cams_r, imgs, _mask, refs = ref.last
+        k = min(4, len(cams_r))
+        sub = cams_r[:k]
+        p, n = clouds[1]
+        with torch.no_grad():
+            final = render(p, n, sub, settings, shading=shading, backend=spec.backend).images
+        written.append(save_image_rows(out / "references.png", [imgs[:k].clamp(0, 1), refs[:k].clamp(0, 1),
+                                                                 final.clamp(0, 1)],
+                                       ["input render", "reference", "result"]).name)
+    steps = ocfg.normal_steps + ocfg.point_steps
+    written.append(save_loss_curve(out / "loss.png", history, steps, title).name)
+    atomic_write_json(out / "loss.json", {"step": history["step"], "loss": history["loss"], "kind": history["kind"],
+                                          "time": history["time"], "steps_per_cycle": steps})
+    written.append("loss.json")
+    return written
+
+
+# ------------------------------------------------------------------------------ the app
+def _example_defaults(cfg: DictConfig) -> tuple[str, str | None, str | None, bool]:
+    """(input, clean, mesh, is_example): with no input, the shipped example and its ground truth."""
+    if cfg.get("input"):
+        return str(cfg.input), cfg.get("clean"), cfg.get("mesh"), False
+    ex = EXAMPLE_DIR
+    missing = [f for f in EXAMPLE_FILES.values() if not (ex / f).is_file()]
+    if missing:
+        raise FileNotFoundError(f"the shipped example is incomplete: {missing} missing in {ex} "
+                                "(regenerate it with python -m experiments.make_example)")
+    return (str(ex / EXAMPLE_FILES["input"]), cfg.get("clean") or str(ex / EXAMPLE_FILES["clean"]),
+            cfg.get("mesh") or str(ex / EXAMPLE_FILES["mesh"]), True)
+
+
+def run(cfg: DictConfig) -> dict:
+    """Denoise ``cfg.input`` (see the module docstring); returns the metrics dict."""
+    from dss.pipeline import estimate_noise_level
+    from dss.pointcloud import PointCloud, save_ply
+
+    t_start = time.perf_counter()
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    out = run_dir(cfg)
+    input_path, clean_path, mesh_path, is_example = _example_defaults(cfg)
+    # Everything that can be refused is checked before any work or any output file.
+    output = resolve_output(cfg, out, "denoised.ply")
+    cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
+                                     bool(cfg.normals.recompute))
+    estimated = estimate_noise_level(cloud.points)
+    hint = cfg.get("noise")
+    if hint is not None and not (float(hint) > 0):
+        raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
+    noise = float(hint) if hint is not None else estimated
+    generator, model_note = make_reference(cfg, noise)
+    base_spec = None
+    if cfg.get("image_size"):
+        from data_prep.render_spec import load_render_spec
+
+        base_spec = load_render_spec(image_size=[int(cfg.image_size)] * 2)
+    spec, spec_source = generator.render_spec(base_spec)
+    if cfg.get("image_size") and list(spec.image_size) != [int(cfg.image_size)] * 2:
+        log.warning("image_size=%s ignored: the model fixes the render size to %s", cfg.image_size, list(spec.image_size))
+    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud), int(cfg.seed))
+    save_config(cfg, out)
+    log.info("denoising %s (%d points, noise %s %.4g) with %s at %s px", input_path, len(cloud),
+             "hint" if hint is not None else "estimated", noise, generator.describe(), list(spec.image_size))
+
+    t0 = time.perf_counter()
+    pts, nrm, history, ref, norm, ocfg = run_refinement(cfg, cloud.points, cloud.normals, generator, spec,
+                                                        f"dss-denoise ({generator.name})")
+    t_opt = time.perf_counter() - t0
+    save_ply(output, PointCloud(pts, nrm))
+
+    protocols = list(cfg.metrics.protocols)
+    m_in = score(cloud.points.numpy(), clean, mesh, protocols)
+    m_out = score(pts.numpy(), clean, mesh, protocols)
+    floor = None
+    if mesh is not None and cfg.metrics.get("floor", True):
+        from dss.metrics import chamfer_floor
+
+        floor = {pr: chamfer_floor(mesh, len(cloud), int(cfg.seed), pr, with_mesh=True).to_dict() for pr in protocols}
+
+    rows = [(cloud.points, cloud.normals), (pts, nrm)]
+    labels = ["noisy input", f"denoised ({generator.name})"]
+    if clean is not None:
+        from dss.pointcloud import estimate_normals
+
+        cp = torch.from_numpy(np.asarray(clean, np.float32))
+        rows.append((cp, estimate_normals(cp, k=int(cfg.normals.k))))
+        labels.append("clean (ground truth)")
+    title = f"dss-denoise {Path(input_path).name}, reference {generator.name}"
+    figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm)
+
+    metrics = {
+        "input": input_report,
+        "example": is_example,
+        "output": str(output),
+        "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
+        "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
+        "reference": {**generator.describe(), "selection": model_note},
+        "render": {"source": spec_source, "image_size": list(spec.image_size), "spec": spec.to_dict()},
+        "optimizer": history["config"],
+        "steps": history.get("steps"),
+        "lr_halvings": history.get("lr_halvings"),
+        "final_loss": history["loss"][-1] if history["loss"] else None,
+        "time_s": {"total": time.perf_counter() - t_start, "optimization": t_opt,
+                   "reference_generation": history.get("reference_seconds"),
+                   "per_step": t_opt / max(1, history.get("steps") or 1)},
+        "torch_threads": torch.get_num_threads(),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "metrics_input": m_in,
+        "metrics_output": m_out,
+        "chamfer_floor": floor,
+        "summary": {"input": short_metrics(m_in), "output": short_metrics(m_out)},
+        "figures": figures,
+    }
+    save_metrics(metrics, out)
+    _log_summary(metrics)
+    return metrics
+
+
+def _log_summary(metrics: dict) -> None:
+    s = metrics["summary"]
+    for pr in s["output"]:
+        i, o = s["input"][pr], s["output"][pr]
+        log.info("%s protocol: Chamfer x1e4 %.3f -> %.3f, Hausdorff x1e3 %.3f -> %.3f%s", pr, i["chamfer"], o["chamfer"],
+                 i["hausdorff"], o["hausdorff"],
+                 f", P2M x1e4 {i['p2m']:.3f} -> {o['p2m']:.3f}" if o.get("p2m") is not None else "")
+    log.info("wall time %.1f s; outputs in %s", metrics["time_s"]["total"], Path(metrics["output"]).parent)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="denoise")
+def _main(cfg: DictConfig) -> None:
+    m = run(cfg)
+    s = m["summary"]
+    if s["output"]:
+        for pr in s["output"]:
+            print(f"[{pr} protocol] Chamfer x1e4: input {s['input'][pr]['chamfer']:.3f} -> "
+                  f"denoised {s['output'][pr]['chamfer']:.3f}")
+    print(f"denoised cloud: {m['output']} ({m['time_s']['total']:.0f} s)")
+
+
+def main() -> None:
+    positional_to_override("input")
+    _main()
+
+
+if __name__ == "__main__":
+    main()
