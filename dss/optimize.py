@@ -76,6 +76,9 @@ class OptimizerConfig:
     lr_scale: float = 0.01
     momentum: float = 0.9
     nesterov: bool = True
+    optimizer: str = "sgd"  # "sgd" (paper: Nesterov momentum) | "adam" (scale-free steps, an option)
+    adam_lr_points: float = 2e-3
+    adam_lr_normals: float = 2e-2
     clip_point_grad: float | None = 0.01
     clip_normal_grad: float | None = 1e-4
     image_loss: str = "smape"  # "smape" | "l1"
@@ -100,6 +103,8 @@ class OptimizerConfig:
     def __post_init__(self):
         if self.schedule not in ("alternating", "joint"):
             raise ValueError(f"schedule must be 'alternating' or 'joint', got {self.schedule!r}")
+        if self.optimizer not in ("sgd", "adam"):
+            raise ValueError(f"optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
         if self.regularizer_weighting not in ("relative", "absolute"):
             raise ValueError(f"regularizer_weighting must be 'relative' or 'absolute', got {self.regularizer_weighting!r}")
         if self.image_loss not in ("smape", "l1"):
@@ -197,8 +202,13 @@ class MultiViewOptimizer:
     # ------------------------------------------------------------------ internals
     def _make_optimizers(self):
         c = self.cfg
-        self.opt_p = torch.optim.SGD([self.points], lr=c.lr_points * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=c.nesterov and c.momentum > 0)
-        self.opt_n = torch.optim.SGD([self.normals], lr=c.lr_normals * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=c.nesterov and c.momentum > 0)
+        if c.optimizer == "adam":  # lr in scene units per step: each coordinate moves ~lr
+            self.opt_p = torch.optim.Adam([self.points], lr=c.adam_lr_points * self.lr_scale)
+            self.opt_n = torch.optim.Adam([self.normals], lr=c.adam_lr_normals * self.lr_scale)
+            return
+        nest = c.nesterov and c.momentum > 0
+        self.opt_p = torch.optim.SGD([self.points], lr=c.lr_points * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=nest)
+        self.opt_n = torch.optim.SGD([self.normals], lr=c.lr_normals * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=nest)
 
     def _image_loss(self, images, target):
         if self.cfg.image_loss == "smape":
