@@ -266,8 +266,17 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
     merge = settings.merge_threshold
     if merge is None:
         merge = settings.merge_fraction * max(bbox_diagonal(points.detach()), 1e-12)
-    splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling, settings.znear,
-                            settings.filter_variance)
+    needs_grad_inputs = torch.is_grad_enabled() and (points.requires_grad or normals.requires_grad)
+    if backend == "cpp" and not needs_grad_inputs:
+        # forward only: the fused C++ projection (same formulas as project_splats)
+        packed = _ext.load_cpu().project_splats_forward(
+            points.detach(), normals.detach(), cameras.R, cameras.t, cameras.focal, cameras.principal,
+            sigma_t.detach().reshape(-1), float(settings.cutoff), bool(settings.backface_culling), float(settings.znear),
+            float(settings.filter_variance))
+        splats = Splats(packed)
+    else:
+        splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling,
+                                settings.znear, settings.filter_variance)
     attrs = shade(shading, points, normals, cameras, colors)
     C = attrs.shape[-1]
     bg = torch.as_tensor(settings.background, dtype=torch.float32, device=points.device).flatten()

@@ -9,7 +9,7 @@ the screen-space covariance ``J_k V_k J_k^T``; the low-pass filter adds ``I`` (o
 
 We never build a tangent basis: with ``M`` the (2, 3) derivative of the pinhole projection in
 camera space and ``P = I - n n^T`` the projector onto the tangent plane, ``J J^T = M P M^T`` and
-``|det J| = sqrt(det(J J^T))`` for any orthonormal tangent basis. This is smooth in ``n`` (the
+``|det J| = |(m1 x m2) . n| = f^2 |n . p_cam| / Z^3`` for any orthonormal tangent basis. This is smooth in ``n`` (the
 normal gradients of Eq. gradN flow through it) and stays finite for edge-on splats, whose weight
 simply goes to zero.
 
@@ -98,8 +98,10 @@ def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
     A11 = (m1 * m1).sum(-1) - m1n * m1n
     A12 = (m1 * m2).sum(-1) - m1n * m2n
     A22 = (m2 * m2).sum(-1) - m2n * m2n
-    det_A = (A11 * A22 - A12 * A12).clamp_min(0)
-    det_J = torch.sqrt(det_A + 1e-30) * (n_len2[..., 0] > 1e-20)
+    # |det J| = |(m1 x m2) . n| = f^2 |n . p_cam| / Z^3 (foreshortening): exact, no cancellation
+    # (A11 A22 - A12^2 loses all its digits in float32 for near edge-on splats).
+    det_J = f * f * (n_hat * torch.stack([X, Y, Zs], -1)).sum(-1).abs() / (Zs * Zs * Zs)
+    det_A = det_J * det_J
 
     if filter_variance <= 0:
         raise ValueError(f"filter_variance must be > 0, got {filter_variance}")

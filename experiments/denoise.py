@@ -217,7 +217,15 @@ def make_reference(cfg: DictConfig, noise: float | None):
         path, level = select_model(noise)
         kwargs["model"] = str(path)
         note = f"shipped model for noise {level:g} ({path.name}), chosen for noise {noise:.4g}"
-    return instantiate(node, **kwargs), note
+    from hydra.errors import InstantiationException
+
+    try:
+        return instantiate(node, **kwargs), note
+    except InstantiationException as e:
+        # Hydra wraps the generator's own (clear) error; show that one to the user.
+        if isinstance(e.__cause__, Exception):
+            raise e.__cause__ from None
+        raise
 
 
 def progress_bar(total: int, desc: str, enabled: bool):
@@ -292,6 +300,17 @@ def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list
     return written
 
 
+def _shading_for(generator, spec, filter_shading: str):
+    """(shading, name): the network sees what it was trained on (the spec's point light); an
+    image filter gets ``filter_shading``: ``sun`` (the paper's three RGB lights: the colour
+    encodes the whole normal) or ``point`` (the spec's light)."""
+    if generator.name == "onnx" or filter_shading == "point":
+        return spec.point_light(), "point light " + str(list(spec.light.position))
+    if filter_shading == "sun":
+        return "sun", "sun"
+    raise ValueError(f"filter_shading must be 'sun' or 'point', got {filter_shading!r}")
+
+
 # ------------------------------------------------------------------------------ the app
 def _example_defaults(cfg: DictConfig) -> tuple[str, str | None, str | None, bool]:
     """(input, clean, mesh, is_example): with no input, the shipped example and its ground truth."""
@@ -326,6 +345,9 @@ def run(cfg: DictConfig) -> dict:
         raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
     noise = float(hint) if hint is not None else estimated
     generator, model_note = make_reference(cfg, noise)
+    if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
+        log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
+                    generator.noise_level, "given as" if hint is not None else "estimated at", noise)
     base_spec = None
     if cfg.get("image_size"):
         from data_prep.render_spec import load_render_spec
@@ -334,6 +356,7 @@ def run(cfg: DictConfig) -> dict:
     spec, spec_source = generator.render_spec(base_spec)
     if cfg.get("image_size") and list(spec.image_size) != [int(cfg.image_size)] * 2:
         log.warning("image_size=%s ignored: the model fixes the render size to %s", cfg.image_size, list(spec.image_size))
+    shading, shading_name = _shading_for(generator, spec, str(cfg.get("filter_shading", "sun")))
     clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud), int(cfg.seed))
     save_config(cfg, out)
     log.info("denoising %s (%d points, noise %s %.4g) with %s at %s px", input_path, len(cloud),
@@ -341,7 +364,7 @@ def run(cfg: DictConfig) -> dict:
 
     t0 = time.perf_counter()
     pts, nrm, history, ref, norm, ocfg = run_refinement(cfg, cloud.points, cloud.normals, generator, spec,
-                                                        f"dss-denoise ({generator.name})")
+                                                        f"dss-denoise ({generator.name})", shading=shading)
     t_opt = time.perf_counter() - t0
     save_ply(output, PointCloud(pts, nrm))
 
@@ -363,7 +386,7 @@ def run(cfg: DictConfig) -> dict:
         rows.append((cp, estimate_normals(cp, k=int(cfg.normals.k))))
         labels.append("clean (ground truth)")
     title = f"dss-denoise {Path(input_path).name}, reference {generator.name}"
-    figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm)
+    figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
 
     metrics = {
         "input": input_report,
@@ -372,7 +395,8 @@ def run(cfg: DictConfig) -> dict:
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
         "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
         "reference": {**generator.describe(), "selection": model_note},
-        "render": {"source": spec_source, "image_size": list(spec.image_size), "spec": spec.to_dict()},
+        "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
+                   "spec": spec.to_dict()},
         "optimizer": history["config"],
         "steps": history.get("steps"),
         "lr_halvings": history.get("lr_halvings"),

@@ -79,6 +79,7 @@ def run(cfg: DictConfig) -> dict:
         points = add_gaussian_noise(points, noise, seed=int(cfg.seed))
         normals = estimate_normals(points, k=int(cfg.normals.k))
         input_report["added_noise"] = noise
+        input_report["normals"] = f"estimated after adding noise (PCA, k={int(cfg.normals.k)})"
     if "model" in cfg.reference:
         raise ValueError("dss-filter takes an image filter (reference=l0|slic|identity); "
                          "use dss-denoise for the denoising network")

@@ -180,7 +180,7 @@ class L0Reference(_FilterReference):
 
     filter_name = "l0"
 
-    def __init__(self, lam: float = 0.02, kappa: float = 2.0, beta_max: float = 1e5):
+    def __init__(self, lam: float = 0.1, kappa: float = 2.0, beta_max: float = 1e5):
         super().__init__(lam=float(lam), kappa=float(kappa), beta_max=float(beta_max))
 
 

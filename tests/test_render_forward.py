@@ -143,16 +143,29 @@ def test_depth_render_is_inverse_depth():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("K", [1, 5, 8])
 def test_backends_agree_on_random_scenes(seed, K, cpp_backend):
+    """The rasteriser contract: from the same splats, identical caches and images."""
+    from dss.render import rasterize
+    from dss.shading import shade
+    from dss.splats import project_splats
+
     pts, nrm, cams, sigma, colors = random_scene(seed, n=400)
+    sp = project_splats(pts, nrm, cams, sigma, 1.0)
+    attrs = shade("albedo", pts, nrm, cams, colors)
+    bg = torch.zeros(3)
+    fa, ia, ma = rasterize(sp, cams.image_size, K, 1.0, 0.05, "reference", attributes=attrs, background=bg)
+    fb, ib, mb = rasterize(sp, cams.image_size, K, 1.0, 0.05, cpp_backend, attributes=attrs, background=bg)
+    assert torch.equal(fa.idx, fb.idx)
+    assert torch.equal(fa.depth, fb.depth)
+    assert torch.allclose(fa.rho, fb.rho, rtol=1e-5, atol=1e-7)
+    assert torch.allclose(ia, ib, atol=1e-5)
+    assert torch.equal(ma, mb)
+    assert ma.float().mean() > 0.05
+    # end to end through render() (the C++ path also fuses the projection): same images
     s = RenderSettings(K=K, merge_threshold=0.05)
     a = render(pts, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma, backend="reference")
     b = render(pts, nrm, cams, s, shading="albedo", colors=colors, sigma=sigma, backend=cpp_backend)
-    assert torch.equal(a.fragments.idx, b.fragments.idx)
-    assert torch.equal(a.fragments.depth, b.fragments.depth)
-    assert torch.allclose(a.fragments.rho, b.fragments.rho, rtol=1e-5, atol=1e-7)
-    assert torch.allclose(a.images, b.images, atol=1e-5)
-    assert torch.equal(a.mask, b.mask)
-    assert a.mask.float().mean() > 0.05
+    differ = (a.images - b.images).abs().amax(-1) > 1e-5
+    assert differ.float().mean() < 1e-3  # at most a few boundary pixels flip by one ulp of q
 
 
 def test_bad_render_input_messages():
@@ -167,3 +180,18 @@ def test_bad_render_input_messages():
         render(torch.zeros(3, 3), torch.zeros(3, 3), cams, backend="gpu-magic")
     with pytest.raises(ValueError, match="gradient must be"):
         RenderSettings(gradient="soft")
+
+
+def test_fused_cpp_projection_matches_torch(cpp_backend):
+    from dss import _ext
+    from dss.splats import project_splats
+
+    for seed in range(3):
+        pts, nrm, cams, sigma, _ = random_scene(seed, n=500)
+        nrm[:5] = 0.0  # zero normals
+        for cull in (True, False):
+            a = project_splats(pts, nrm, cams, sigma, 1.3, cull, 1e-3, 0.7).packed
+            b = _ext.load_cpu().project_splats_forward(pts, nrm, cams.R, cams.t, cams.focal, cams.principal, sigma,
+                                                       1.3, cull, 1e-3, 0.7)
+            assert torch.equal(a[..., 9], b[..., 9])
+            assert torch.allclose(a, b, rtol=2e-5, atol=1e-5), (a - b).abs().max()

@@ -481,8 +481,81 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
   return {gpk, gat};
 }
 
+// ---------------------------------------------------------------------------------------------
+// Forward-only fused version of dss/splats.py project_splats (same formulas; used when no
+// gradient is needed, where the torch version's many (V, N) temporaries dominate at 100K points).
+torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals, torch::Tensor R, torch::Tensor t,
+                                     torch::Tensor focal, torch::Tensor principal, torch::Tensor sigma,
+                                     double cutoff, bool culling, double znear, double filter_variance) {
+  points = points.contiguous().to(torch::kFloat32);
+  normals = normals.contiguous().to(torch::kFloat32);
+  R = R.contiguous().to(torch::kFloat32);
+  t = t.contiguous().to(torch::kFloat32);
+  focal = focal.contiguous().to(torch::kFloat32);
+  principal = principal.contiguous().to(torch::kFloat32);
+  const int64_t N = points.size(0), V = R.size(0);
+  sigma = sigma.to(torch::kFloat32).expand({N}).contiguous();
+  auto out = torch::empty({V, N, kFields}, torch::TensorOptions().dtype(torch::kFloat32));
+  const float* Pp = points.data_ptr<float>();
+  const float* Nn = normals.data_ptr<float>();
+  const float* Rr = R.data_ptr<float>();
+  const float* Tt = t.data_ptr<float>();
+  const float* Ff = focal.data_ptr<float>();
+  const float* Cc = principal.data_ptr<float>();
+  const float* Sg = sigma.data_ptr<float>();
+  float* O = out.data_ptr<float>();
+  const float fv = (float)filter_variance, C2 = 2.f * (float)cutoff, zn = (float)znear;
+  dynamic_for(V * ((N + 1023) / 1024), 1, [&](int64_t item) {
+    const int64_t nb = (N + 1023) / 1024;
+    const int64_t v = item / nb, k0 = (item % nb) * 1024, k1 = std::min(N, k0 + 1024);
+    const float* Rv = Rr + v * 9;
+    const float f = Ff[v], cx = Cc[v * 2], cy = Cc[v * 2 + 1];
+    for (int64_t k = k0; k < k1; ++k) {
+      const float* p = Pp + k * 3;
+      const float* n = Nn + k * 3;
+      float pc[3], nc[3];
+      for (int a = 0; a < 3; ++a) {
+        pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + Tt[v * 3 + a];
+        nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
+      }
+      const float X = pc[0], Y = pc[1], Z = pc[2];
+      const float Zs = Z > zn ? Z : 1.f;
+      const float nl2 = nc[0] * nc[0] + nc[1] * nc[1] + nc[2] * nc[2];
+      const float inv = 1.f / std::sqrt(nl2 + 1e-20f);
+      const float nh[3] = {nc[0] * inv, nc[1] * inv, nc[2] * inv};
+      const float m1[3] = {f / Zs, 0.f, -f * X / (Zs * Zs)};
+      const float m2[3] = {0.f, f / Zs, -f * Y / (Zs * Zs)};
+      const float m1n = m1[0] * nh[0] + m1[2] * nh[2];
+      const float m2n = m2[1] * nh[1] + m2[2] * nh[2];
+      const float A11 = m1[0] * m1[0] + m1[2] * m1[2] - m1n * m1n;
+      const float A12 = m1[2] * m2[2] - m1n * m2n;
+      const float A22 = m2[1] * m2[1] + m2[2] * m2[2] - m2n * m2n;
+      const float detJ = f * f * std::fabs(nh[0] * X + nh[1] * Y + nh[2] * Zs) / (Zs * Zs * Zs);
+      const float detA = detJ * detJ;
+      const float s2 = Sg[k] * Sg[k];
+      const float S11 = s2 * A11 + fv, S12 = s2 * A12, S22 = s2 * A22 + fv;
+      const float detS = s2 * s2 * detA + s2 * fv * (A11 + A22) + fv * fv;
+      float* o = O + (v * N + k) * kFields;
+      o[0] = f * X / Zs + cx;
+      o[1] = f * Y / Zs + cy;
+      o[2] = S22 / detS;
+      o[3] = -2.f * S12 / detS;
+      o[4] = S11 / detS;
+      o[5] = detJ / (2.f * 3.14159265358979f * std::sqrt(detS));
+      o[6] = Z;
+      o[7] = std::sqrt(C2 * S11);
+      o[8] = std::sqrt(C2 * S22);
+      bool valid = Z > zn;
+      if (culling) valid = valid && (nc[0] * X + nc[1] * Y + nc[2] * Z) < 0.f;
+      o[9] = valid ? 1.f : 0.f;
+    }
+  });
+  return out;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
+  m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CPU)");
 }

@@ -1,0 +1,317 @@
+"""dss-denoise: the image-to-geometry pipeline, reference generators, noise estimate, the app (fast).
+
+What makes the Chamfer test meaningful: with the ``oracle`` reference (renders of the *clean*
+cloud through the same cameras) the image term has a known right answer, so the pipeline must
+beat both the noisy input and the regularisers alone (``identity`` reference). The L0 reference
+is only required to beat the noisy input. The tiny ONNX model of these tests is an untrained,
+near-identity network: it checks the wiring (metadata-driven render setup, batching, masking),
+not denoising quality.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from onnx import TensorProto, helper
+
+from data_prep.render_spec import load_render_spec
+from data_prep.sampling import noisy_copy, poisson_disk
+from data_prep.shapes import make_shape
+from dss.metrics import evaluate
+from dss.optimize import OptimizerConfig
+from dss.pipeline import ReferenceImageError, estimate_noise_level, refine_with_reference
+from dss.pointcloud import PointCloud, PointCloudError, estimate_normals, save_ply
+from dss.render import render
+from experiments.make_example import write_ply
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+torch.set_num_threads(1)
+
+
+def compose_cfg(name: str, overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(name, overrides=overrides)
+
+
+# ------------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def case(tmp_path_factory) -> dict:
+    """A generated shape: mesh, 2K clean points (mesh normals), 1% noisy copy (points only)."""
+    root = tmp_path_factory.mktemp("case")
+    mesh = make_shape("displaced_sphere", seed=11, resolution=48)
+    clean = poisson_disk(mesh, 2000, seed=11)
+    noisy = noisy_copy(clean.points, 0.01, seed=12)
+    write_ply(root / "mesh.ply", mesh.vertices, faces=mesh.faces)
+    write_ply(root / "clean.ply", clean.points, normals=clean.normals)
+    write_ply(root / "noisy.ply", noisy)
+    return {"root": root, "mesh": mesh, "clean": clean.points, "clean_normals": clean.normals, "noisy": noisy}
+
+
+def _render_block(**changes) -> dict:
+    """A full render spec block (as a dss-prep manifest has it) at 48 px, with changes."""
+    spec = load_render_spec(image_size=[48, 48])
+    d = spec.to_dict()
+    d.pop("backend")
+    for k, v in changes.items():
+        if isinstance(v, dict):
+            d[k] = {**d[k], **v}
+        else:
+            d[k] = v
+    return d
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory) -> Path:
+    """An untrained tiny generator exported with our metadata: noise 1%, 48 px renders, a
+    render block that differs from conf/render/pairs.yaml (fov 35, ambient 0.25)."""
+    from pix2pix.export import build_metadata, export_onnx
+    from pix2pix.networks import ResNetGenerator
+
+    torch.manual_seed(0)
+    g = ResNetGenerator(ngf=4, n_blocks=1, residual=True).eval()
+    info = {"name": "tiny-test", "generator": g.config(), "train_crop_size": 48,
+            "data": {"noise_level": 0.01, "image_size": [48, 48],
+                     "render": _render_block(fov_deg=35.0, light={"ambient": 0.25})},
+            "epoch": 0, "global_step": 0}
+    path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
+    export_onnx(g, path, build_metadata(info))
+    return path
+
+
+@pytest.fixture(scope="module")
+def foreign_onnx(tmp_path_factory) -> Path:
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 4, 4])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 3, 4, 4])
+    m = helper.make_model(helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "g", [x], [y]),
+                          opset_imports=[helper.make_opsetid("", 17)])
+    path = tmp_path_factory.mktemp("foreign") / "relu.onnx"
+    onnx.save(m, str(path))
+    return path
+
+
+def denoise_overrides(case, out: Path, *extra: str) -> list[str]:
+    r = case["root"]
+    return [f"input={r / 'noisy.ply'}", f"clean={r / 'clean.ply'}", f"mesh={r / 'mesh.ply'}", f"out_dir={out}",
+            "reference=l0", "image_size=64", "optimizer.cycles=2", "figures.views=2", "figures.image_size=48",
+            "progress=false", "metrics.floor=false", *extra]
+
+
+# ------------------------------------------------------------------------------- noise level
+@pytest.mark.parametrize("family,seed", [("superquadric", 3), ("displaced_sphere", 5), ("teapot", 2)])
+def test_estimate_noise_level(family, seed):
+    mesh = make_shape(family, seed=seed, resolution=64)
+    clean = poisson_disk(mesh, 10000, seed=seed).points
+    assert estimate_noise_level(clean) < 0.0015
+    for level in (0.003, 0.01):
+        est = estimate_noise_level(noisy_copy(clean, level, seed=seed + 1))
+        assert abs(est - level) / level < 0.25, (family, level, est)
+
+
+def test_select_model_by_noise(tmp_path, monkeypatch):
+    import experiments.reference_generators as rg
+
+    monkeypatch.setattr(rg, "ASSETS_DIR", tmp_path)
+    with pytest.raises(rg.ModelNotFoundError, match=r"denoiser_noise_1pct\.onnx.*does not exist.*reference=l0"):
+        rg.select_model(0.012)
+    for name in rg.SHIPPED_MODELS.values():
+        (tmp_path / name).write_bytes(b"x")
+    assert rg.select_model(0.012)[1] == 0.01 and rg.select_model(0.0075)[1] == 0.01
+    assert rg.select_model(0.002)[1] == 0.003 and rg.select_model(0.005)[1] == 0.003
+    with pytest.raises(ValueError, match="positive"):
+        rg.select_model(0.0)
+
+
+# ------------------------------------------------------------------------------- dss-level pipeline
+def _normalised(points):
+    from dss.pointcloud import normalize_unit_diagonal
+
+    p, c, s = normalize_unit_diagonal(torch.as_tensor(points))
+    return p, c, s
+
+
+def test_pipeline_improves_chamfer(case):
+    """The image term matters: the oracle reference (clean renders) beats the regularisers alone
+    (identity reference), and both beat the noisy input; so does L0."""
+    from experiments.reference_generators import L0Reference, SpecViewSampler
+
+    spec = load_render_spec(image_size=[64, 64])
+    settings, light = spec.render_settings(), spec.point_light()
+    noisy, c, s = _normalised(case["noisy"])
+    clean = (torch.from_numpy(case["clean"]) - c) / s
+    clean_n = torch.from_numpy(case["clean_normals"])
+    normals = estimate_normals(noisy, k=16)
+
+    def oracle(images, cameras):
+        return render(clean, clean_n, cameras, settings, shading=light).images
+
+    cfg = OptimizerConfig(cycles=2, normal_steps=19, point_steps=1)
+    scores = {}
+    for name, fn in (("oracle", oracle), ("identity", lambda images: images), ("l0", L0Reference())):
+        res, ref = refine_with_reference(noisy, normals, fn, config=cfg, settings=settings, shading=light,
+                                         sampler=SpecViewSampler(spec, 12, seed=0))
+        assert res.points.shape == noisy.shape and torch.isfinite(res.points).all()
+        assert ref.calls == 2 and res.history["steps"] == 40
+        scores[name] = evaluate(res.points.numpy(), clean.numpy(), None, "paper").chamfer
+    before = evaluate(noisy.numpy(), clean.numpy(), None, "paper").chamfer
+    assert scores["oracle"] < scores["identity"] < before, (before, scores)
+    assert scores["l0"] < before, (before, scores)
+
+
+def test_reference_renderer_keeps_background_and_checks_output(case):
+    from dss.cameras import fps_sphere_cameras
+    from dss.pipeline import ReferenceRenderer
+
+    p, _, _ = _normalised(case["clean"])
+    n = torch.from_numpy(case["clean_normals"])
+    cams = fps_sphere_cameras(3, (0, 0, 0), 1.6, 60.0, (32, 32), generator=torch.Generator().manual_seed(0))
+    ref = ReferenceRenderer(p, n, lambda images: torch.full_like(images, 0.7))
+    out = ref(cams)
+    _, imgs, mask, _ = ref.last
+    assert mask.any() and (~mask).any()
+    assert torch.all(out[mask] == 0.7) and torch.equal(out[~mask], imgs[~mask])
+    seen = {}
+    ReferenceRenderer(p, n, lambda images, mask, cameras: seen.update(m=mask, c=cameras) or images)(cams)
+    assert seen["m"].shape == (3, 32, 32) and seen["c"] is cams
+    with pytest.raises(ReferenceImageError, match="shape"):
+        ReferenceRenderer(p, n, lambda images: images[:, :16])(cams)
+    with pytest.raises(ReferenceImageError, match="NaN"):
+        ReferenceRenderer(p, n, lambda images: images * float("nan"))(cams)
+
+
+def test_onnx_reference_masks_and_batches(case, tiny_onnx):
+    from experiments.reference_generators import OnnxReference
+
+    gen = OnnxReference(tiny_onnx, threads=1, max_batch=2)
+    spec, source = gen.render_spec()
+    assert source == "model" and spec.image_size == (48, 48)
+    assert spec.fov_deg == 35.0 and spec.light.ambient == 0.25
+    images = torch.rand(5, 48, 48, 3)
+    mask = torch.zeros(5, 48, 48, dtype=torch.bool)
+    mask[:, 10:30, 5:40] = True
+    out = gen(images, mask=mask)
+    assert out.shape == images.shape and out.dtype == torch.float32
+    assert torch.equal(out[~mask], images[~mask])
+    whole = gen.denoiser.denoise_views(images.numpy())
+    np.testing.assert_allclose(out[mask].numpy(), torch.from_numpy(whole)[mask].numpy(), atol=1e-5)
+
+
+# ------------------------------------------------------------------------------- the app
+def test_denoise_app_l0_end_to_end(case, tmp_path):
+    from experiments.denoise import run
+
+    out = tmp_path / "run"
+    m = run(compose_cfg("denoise", denoise_overrides(case, out)))
+    for f in ("denoised.ply", "before_after.png", "references.png", "loss.png", "loss.json", "metrics.json",
+              "config.yaml"):
+        assert (out / f).is_file(), f
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["summary"] == m["summary"]
+    for pr in ("paper", "score"):
+        assert m["metrics_input"][pr]["protocol"] == pr and m["metrics_output"][pr]["p2m"] is not None
+    assert m["summary"]["output"]["paper"]["chamfer"] < m["summary"]["input"]["paper"]["chamfer"]
+    assert m["steps"] == 40 and len(json.loads((out / "loss.json").read_text())["loss"]) == 40
+    assert m["render"]["image_size"] == [64, 64] and m["reference"]["name"] == "l0"
+    assert m["input"]["normals"].startswith("estimated") and m["input"]["nan_rows_dropped"] == 0
+    assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0
+    from dss.pointcloud import load_ply
+
+    res = load_ply(out / "denoised.ply")
+    assert len(res) == 2000 and res.normals is not None
+    # output in input units (not normalised)
+    assert np.allclose(res.points.numpy().mean(0), case["noisy"].mean(0), atol=0.02)
+
+
+def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
+    from experiments.denoise import run
+
+    out = tmp_path / "run"
+    m = run(compose_cfg("denoise", denoise_overrides(
+        case, out, "reference=onnx", f"reference.model={tiny_onnx}", "reference.threads=1",
+        "optimizer.cycles=1", "optimizer.normal_steps=2", "optimizer.point_steps=1", "image_size=null")))
+    assert m["render"]["source"] == "model"
+    assert m["render"]["image_size"] == [48, 48]  # from the model file, not conf/render/pairs.yaml (128)
+    assert m["render"]["spec"]["fov_deg"] == 35.0 and m["render"]["spec"]["light"]["ambient"] == 0.25
+    assert m["reference"]["name"] == "onnx" and m["reference"]["noise_level"] == 0.01
+    assert (out / "denoised.ply").is_file() and m["steps"] == 3
+
+
+def test_denoise_app_picks_shipped_model_by_hint(case, tmp_path, tiny_onnx, monkeypatch):
+    import experiments.reference_generators as rg
+    from experiments.denoise import run
+
+    assets = tmp_path / "assets"
+    assets.mkdir()
+    shutil.copy(tiny_onnx, assets / rg.SHIPPED_MODELS[0.01])
+    monkeypatch.setattr(rg, "ASSETS_DIR", assets)
+    base = denoise_overrides(case, tmp_path / "a", "reference=onnx", "reference.threads=1", "optimizer.cycles=1",
+                             "optimizer.normal_steps=1", "optimizer.point_steps=1", "image_size=null")
+    m = run(compose_cfg("denoise", base))  # no hint: the estimated ~1% picks the 1% model
+    assert m["noise"]["hint"] is None and "denoiser_noise_1pct.onnx" in m["reference"]["selection"]
+    with pytest.raises(FileNotFoundError, match=r"denoiser_noise_0\.3pct\.onnx.*does not exist"):
+        run(compose_cfg("denoise", [*base, "noise=0.003", f"out_dir={tmp_path / 'b'}"]))
+    assert not list((tmp_path / "b").glob("*.ply"))
+
+
+def test_denoise_app_bad_inputs(case, tmp_path, foreign_onnx):
+    from experiments.denoise import OutputExistsError, run
+    from pix2pix.runtime import DenoiserFormatError
+
+    def cfg(out, *extra):
+        return compose_cfg("denoise", denoise_overrides(case, out, "optimizer.cycles=1", "optimizer.normal_steps=1",
+                                                        *extra))
+
+    # missing input file
+    out = tmp_path / "missing"
+    with pytest.raises(PointCloudError, match=r"nope\.ply: no such file"):
+        run(cfg(out, f"input={tmp_path / 'nope.ply'}"))
+    assert not list(out.glob("*.ply"))
+    # an ONNX file that is not one of our denoisers
+    out = tmp_path / "foreign"
+    with pytest.raises(DenoiserFormatError, match=r"relu\.onnx.*not a DSS pix2pix denoiser"):
+        run(cfg(out, "reference=onnx", f"reference.model={foreign_onnx}"))
+    assert not list(out.glob("*.ply"))
+    # NaN rows: refused with nan_policy=raise, dropped and reported otherwise
+    pts = case["noisy"].copy()
+    pts[[5, 17, 99]] = np.nan
+    nan_ply = tmp_path / "nan.ply"
+    write_ply(nan_ply, pts)
+    out = tmp_path / "nan_raise"
+    with pytest.raises(PointCloudError, match=r"nan\.ply: 3 of 2000 rows hold NaN"):
+        run(cfg(out, f"input={nan_ply}", "nan_policy=raise"))
+    assert not list(out.glob("*.ply"))
+    m = run(cfg(tmp_path / "nan_drop", f"input={nan_ply}"))
+    assert m["input"]["nan_rows_dropped"] == 3 and m["input"]["points"] == 1997
+    # an existing output is refused (and left untouched) unless overwrite=true
+    target = tmp_path / "exists.ply"
+    save_ply(target, PointCloud(torch.zeros(4, 3) + torch.arange(4.0)[:, None]))
+    before = target.read_bytes()
+    with pytest.raises(OutputExistsError, match=r"exists\.ply already exists.*overwrite=true"):
+        run(cfg(tmp_path / "ow", f"output={target}"))
+    assert target.read_bytes() == before and not (tmp_path / "ow" / "metrics.json").exists()
+    m = run(cfg(tmp_path / "ow", f"output={target}", "overwrite=true"))
+    assert target.read_bytes() != before and m["output"] == str(target)
+    assert not list(tmp_path.glob(".exists.*"))  # no temp files left behind
+
+
+def test_shipped_example_is_complete_and_consistent():
+    """The no-argument run's input: files present, small, and matching their provenance."""
+    from dss.metrics import load_mesh, load_points
+    from experiments.denoise import EXAMPLE_DIR, EXAMPLE_FILES
+
+    files = [EXAMPLE_DIR / f for f in EXAMPLE_FILES.values()]
+    assert all(f.is_file() for f in files)
+    assert sum(f.stat().st_size for f in files) < 3_000_000
+    clean, noisy = load_points(files[1]), load_points(files[0])
+    v, f = load_mesh(files[2])
+    assert len(clean) == len(noisy) == 20000 and len(f) > 1000
+    from data_prep.sampling import measured_noise_std
+
+    assert abs(measured_noise_std(clean, noisy) - 0.01) < 5e-4
+    assert abs(np.linalg.norm(v.max(0) - v.min(0)) - 1.0) < 1e-3
