@@ -27,8 +27,9 @@ are zeroed.
 Regulariser weights: with ``regularizer_weighting="relative"`` (default) the weights gamma_p
 and gamma_r are what the paper's Appendix says they are for: the ratio of the mean per-point
 gradient magnitude of L_p (L_r) to that of the image loss. Each step rescales the regulariser
-gradients to gamma x (mean |dL_I/dp|), using the latest point step's image-gradient magnitude
-during normal steps. This keeps the balance independent of point count and scene scale (the
+gradients to gamma x (mean |dL_I/dp|), with the image-gradient magnitude measured at the first
+step of the run (re-measuring it every step made the regulariser steps grow as the cloud
+drifted: a runaway feedback). This keeps the balance independent of point count and scene scale (the
 absolute losses are not: L_r's 1e-4 is an absolute squared length). ``"absolute"`` adds
 gamma x L as in Eq. total_loss.
 
@@ -263,7 +264,11 @@ class MultiViewOptimizer:
             g_img = torch.nan_to_num(g_img.detach(), nan=0.0, posinf=0.0, neginf=0.0)
             if self.cfg.clip_point_grad:
                 g_img = g_img.clamp(-self.cfg.clip_point_grad, self.cfg.clip_point_grad)
-            self._img_grad_scale = float(g_img.double().norm(dim=1).mean())
+            if self._img_grad_scale is None:
+                # Measured once (first image gradient of the run) and then kept: re-measuring it
+                # every step couples the regulariser step to the image gradient, which grows as
+                # the cloud drifts from the reference, a runaway feedback.
+                self._img_grad_scale = float(g_img.double().norm(dim=1).mean())
             if not image_moves_points:
                 g_img = None
         occl = occlusion_counts(out).detach()
