@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from . import _ext
+from . import _ext, _ext_cuda
 from .cameras import Cameras
 from .pointcloud import bbox_diagonal
 from .rasterizer import reference as ref_raster
@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["RenderSettings", "RenderOutput", "render", "resolve_backend", "rasterize", "BACKENDS"]
 
-BACKENDS = ("auto", "cpp", "reference")
+BACKENDS = ("auto", "cpp", "cuda", "reference")
 
 
 @dataclass
@@ -114,6 +114,16 @@ def resolve_backend(backend: str, device: torch.device | None = None) -> str:
     """Pick a concrete backend: "auto" -> the fastest available for ``device``."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    if device is not None and device.type == "cuda":
+        if backend == "cpp":
+            raise ValueError("backend 'cpp' runs on CPU tensors only")
+        if backend == "auto":
+            return "cuda" if _ext_cuda.cuda_available() else "reference"
+        if backend == "cuda" and not _ext_cuda.cuda_available():
+            raise RuntimeError(f"the CUDA backend is not available: {_ext_cuda.build_error()}")
+        return backend
+    if backend == "cuda":
+        raise ValueError("backend 'cuda' needs CUDA tensors (move points, normals and cameras to the GPU)")
     if device is not None and device.type != "cpu":
         if backend == "cpp":
             raise ValueError("backend 'cpp' runs on CPU tensors only")
@@ -130,10 +140,11 @@ def rasterize(splats: Splats, image_size, K: int, cutoff: float, merge_threshold
     """Stage 2: top-K cache, plus the blended image/mask when ``attributes`` is given."""
     packed = splats.packed.detach()
     H, W = image_size
-    if backend == "cpp":
-        mod = _ext.load_cpu()
-        attrs = attributes.detach().float() if attributes is not None else torch.empty(0)
-        bg = background if background is not None else torch.zeros(attrs.shape[-1] if attrs.numel() else 0)
+    if backend in ("cpp", "cuda"):
+        mod = _ext.load_cpu() if backend == "cpp" else _ext_cuda.load_cuda()
+        dev = packed.device
+        attrs = attributes.detach().float() if attributes is not None else torch.empty(0, device=dev)
+        bg = background if background is not None else torch.zeros(attrs.shape[-1] if attrs.numel() else 0, device=dev)
         idx, depth, rho, images, mask = mod.rasterize_forward(packed.float(), attrs, H, W, K, float(cutoff), float(merge_threshold), bg.float())
         frags = Fragments(idx, depth, rho, float(merge_threshold))
         return frags, (images if attributes is not None else None), mask
@@ -164,8 +175,9 @@ def _blend_differentiable(frags: Fragments, splats: Splats, attributes: torch.Te
 
 def _visibility_grad(o: dict, packed, attrs, idx, depth, rho, images, grad, R, t, focal, principal, background):
     """Visibility term of dL/dp (N, 3) with the chosen backend."""
-    if o["backend"] == "cpp":
-        return _ext.load_cpu().visibility_backward(
+    if o["backend"] in ("cpp", "cuda"):
+        mod = _ext.load_cpu() if o["backend"] == "cpp" else _ext_cuda.load_cuda()
+        return mod.visibility_backward(
             packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
             o["window"], o["stride"], o["cutoff"], o["merge"], o["eps"], 0 if o["mode"] == "dss" else 1)
     frags = Fragments(idx, depth, rho, o["merge"])
@@ -177,7 +189,7 @@ def _visibility_grad(o: dict, packed, attrs, idx, depth, rho, images, grad, R, t
 class _VisibilityGradient(torch.autograd.Function):
     """Identity on the images; in backward adds the visibility term of Eq. gradP to the points.
 
-    Used with the reference backend, whose smooth terms come from torch autograd.
+    Used with the reference and CUDA backends, whose smooth terms come from torch autograd.
     """
 
     @staticmethod

@@ -195,3 +195,9 @@ def test_fused_cpp_projection_matches_torch(cpp_backend):
                                                        1.3, cull, 1e-3, 0.7)
             assert torch.equal(a[..., 9], b[..., 9])
             assert torch.allclose(a, b, rtol=2e-5, atol=1e-5), (a - b).abs().max()
+
+
+def test_cuda_backend_needs_cuda_tensors():
+    cams = axis_camera(8, 8)
+    with pytest.raises(ValueError, match="backend 'cuda' needs CUDA tensors"):
+        render(torch.zeros(3, 3), torch.zeros(3, 3), cams, backend="cuda")
