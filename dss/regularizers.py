@@ -388,17 +388,8 @@ def repulsion_loss(
     ``frames`` (from :func:`local_frames` with the same bandwidth) skips the PCA.
     """
     if frames is None:
-        frames = local_frames(
-            points,
-            normals,
-            occlusion,
-            bandwidth=bandwidth,
-            k=k,
-            sharpness_angle=sharpness_angle,
-            covariance_weight=covariance_weight,
-            neighbors=neighbors,
-            backend=backend,
-        )
+        frames = local_frames(points, normals, occlusion, bandwidth=bandwidth, k=k, sharpness_angle=sharpness_angle,
+                              covariance_weight=covariance_weight, neighbors=neighbors, backend=backend)
     n = points.shape[0]
     if n == 0:
         return points.sum() * 0.0
@@ -429,17 +420,8 @@ def projection_loss(
     if mode not in ("paper", "point_to_plane"):
         raise ValueError(f"projection mode must be 'paper' or 'point_to_plane', got {mode!r}")
     if frames is None:
-        frames = local_frames(
-            points,
-            normals,
-            occlusion,
-            bandwidth=bandwidth,
-            k=k,
-            sharpness_angle=sharpness_angle,
-            covariance_weight=covariance_weight,
-            neighbors=neighbors,
-            backend=backend,
-        )
+        frames = local_frames(points, normals, occlusion, bandwidth=bandwidth, k=k, sharpness_angle=sharpness_angle,
+                              covariance_weight=covariance_weight, neighbors=neighbors, backend=backend)
     n = points.shape[0]
     if n == 0:
         return points.sum() * 0.0

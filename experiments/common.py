@@ -12,7 +12,7 @@ from dss.io_utils import atomic_write_json, atomic_write_text
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_dir", "save_config", "save_metrics", "positional_to_override", "renderer_settings"]
+__all__ = ["run_dir", "save_config", "save_metrics", "positional_to_override", "renderer_settings", "optimization_report"]
 
 
 def run_dir(cfg: DictConfig | None = None) -> Path:
@@ -49,7 +49,7 @@ def positional_to_override(key: str) -> None:
             break
 
 
-def renderer_settings(node) -> "RenderSettings":  # noqa: F821
+def renderer_settings(node) -> RenderSettings:  # noqa: F821
     """RenderSettings from a config node (unknown keys are an error, named)."""
     from dss.render import RenderSettings
 
@@ -61,3 +61,23 @@ def renderer_settings(node) -> "RenderSettings":  # noqa: F821
     if isinstance(d.get("background"), list):
         d["background"] = tuple(d["background"])
     return RenderSettings(**d)
+
+
+def optimization_report(history: dict, t_start: float, t_opt: float) -> dict:
+    """The metrics.json fields every optimisation app reports (schedule, steps, timings, load)."""
+    import os
+    import time
+
+    import torch
+
+    return {
+        "optimizer": history["config"],
+        "steps": history.get("steps"),
+        "lr_halvings": history.get("lr_halvings"),
+        "final_loss": history["loss"][-1] if history["loss"] else None,
+        "time_s": {"total": time.perf_counter() - t_start, "optimization": t_opt,
+                   "reference_generation": history.get("reference_seconds"),
+                   "per_step": t_opt / max(1, history.get("steps") or 1)},
+        "torch_threads": torch.get_num_threads(),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }

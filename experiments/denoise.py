@@ -31,7 +31,13 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from experiments.common import positional_to_override, run_dir, save_config, save_metrics
+from experiments.common import (
+    optimization_report,
+    positional_to_override,
+    run_dir,
+    save_config,
+    save_metrics,
+)
 
 log = logging.getLogger(__name__)
 
@@ -397,15 +403,7 @@ def run(cfg: DictConfig) -> dict:
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},
-        "optimizer": history["config"],
-        "steps": history.get("steps"),
-        "lr_halvings": history.get("lr_halvings"),
-        "final_loss": history["loss"][-1] if history["loss"] else None,
-        "time_s": {"total": time.perf_counter() - t_start, "optimization": t_opt,
-                   "reference_generation": history.get("reference_seconds"),
-                   "per_step": t_opt / max(1, history.get("steps") or 1)},
-        "torch_threads": torch.get_num_threads(),
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        **optimization_report(history, t_start, t_opt),
         "metrics_input": m_in,
         "metrics_output": m_out,
         "chamfer_floor": floor,

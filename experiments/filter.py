@@ -18,7 +18,6 @@ moved, and Chamfer/Hausdorff/P2M to a ground truth when one is given).
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -26,7 +25,13 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from experiments.common import positional_to_override, run_dir, save_config, save_metrics
+from experiments.common import (
+    optimization_report,
+    positional_to_override,
+    run_dir,
+    save_config,
+    save_metrics,
+)
 from experiments.denoise import (
     EXAMPLE_DIR,
     load_ground_truth,
@@ -121,15 +126,7 @@ def run(cfg: DictConfig) -> dict:
         "reference": generator.describe(),
         "shading": str(cfg.shading),
         "render": {"image_size": list(spec.image_size), "spec": spec.to_dict()},
-        "optimizer": history["config"],
-        "steps": history.get("steps"),
-        "lr_halvings": history.get("lr_halvings"),
-        "final_loss": history["loss"][-1] if history["loss"] else None,
-        "time_s": {"total": time.perf_counter() - t_start, "optimization": t_opt,
-                   "reference_generation": history.get("reference_seconds"),
-                   "per_step": t_opt / max(1, history.get("steps") or 1)},
-        "torch_threads": torch.get_num_threads(),
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        **optimization_report(history, t_start, t_opt),
         "change": {"chamfer_to_input_paper_x1e4": moved["chamfer"],
                    "hausdorff_to_input_paper_x1e3": moved["hausdorff"],
                    "normal_change_deg": {"mean": float(angle.mean()), "median": float(angle.median())}},
