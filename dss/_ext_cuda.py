@@ -12,7 +12,7 @@ The module has the CPU module's functions, taking CUDA tensors::
     rasterize_forward(packed, attrs, H, W, K, cutoff, merge, background)
         -> [idx, depth, rho, images, mask]
     visibility_backward(packed, attrs, idx, depth, rho, images, grad, R, focal, principal,
-                        background, window, stride, cutoff, merge, eps, mode) -> (N, 3)
+                        background, planes, window, stride, cutoff, merge, eps, mode) -> (N, 3)
 """
 
 from __future__ import annotations

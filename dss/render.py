@@ -24,7 +24,7 @@ from .pointcloud import bbox_diagonal
 from .rasterizer import reference as ref_raster
 from .rasterizer.fragments import Fragments
 from .shading import shade
-from .splats import Splats, auto_sigma, project_splats
+from .splats import Splats, auto_sigma, project_splats, tangent_planes
 from .visibility import visibility_grad_reference
 
 log = logging.getLogger(__name__)
@@ -55,6 +55,9 @@ class RenderSettings:
         window: half size (pixels) of the screen window around each point whose pixels feed the
             visibility gradient; ``window_stride`` > 1 samples it sparsely (long range, cheaper).
         epsilon: the paper's epsilon in Eq. gradcase (world units squared).
+        occlusion_depth: the depth a point is compared at in the visibility gradient's occlusion
+            test, cases (a)/(b): "plane" (default), the depth of its tangent plane at the pixel;
+            "center", its centre depth at every pixel (see :func:`dss.splats.tangent_planes`).
     """
 
     K: int = 5
@@ -72,6 +75,7 @@ class RenderSettings:
     window: int = 4
     window_stride: int = 1
     epsilon: float = 1e-5
+    occlusion_depth: str = "plane"
 
     def __post_init__(self):
         if not 1 <= self.K <= 8:
@@ -82,6 +86,8 @@ class RenderSettings:
             raise ValueError(f"cutoff must be > 0, got {self.cutoff}")
         if self.gradient not in ("dss", "rbf", "none"):
             raise ValueError(f"gradient must be 'dss', 'rbf' or 'none', got {self.gradient!r}")
+        if self.occlusion_depth not in ("plane", "center"):
+            raise ValueError(f"occlusion_depth must be 'plane' or 'center', got {self.occlusion_depth!r}")
         if self.window < 0 or self.window_stride < 1:
             raise ValueError("window must be >= 0 and window_stride >= 1")
         if isinstance(self.sigma, str) and self.sigma != "auto":
@@ -178,12 +184,12 @@ def _visibility_grad(o: dict, packed, attrs, idx, depth, rho, images, grad, R, t
     if o["backend"] in ("cpp", "cuda"):
         mod = _ext.load_cpu() if o["backend"] == "cpp" else _ext_cuda.load_cuda()
         return mod.visibility_backward(
-            packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
+            packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background, o["planes"],
             o["window"], o["stride"], o["cutoff"], o["merge"], o["eps"], 0 if o["mode"] == "dss" else 1)
     frags = Fragments(idx, depth, rho, o["merge"])
     cams = Cameras(R, t, focal, principal, o["image_size"])
     return visibility_grad_reference(packed, attrs, frags, images, grad, cams, background,
-                                     o["window"], o["stride"], o["cutoff"], o["eps"], o["mode"])
+                                     o["window"], o["stride"], o["cutoff"], o["eps"], o["mode"], planes=o["planes"])
 
 
 class _VisibilityGradient(torch.autograd.Function):
@@ -306,6 +312,7 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
         frags_t = (frags.idx, frags.depth, frags.rho)
         cam_t = (cameras.R, cameras.t, cameras.focal, cameras.principal)
         vis_points = points if (settings.gradient != "none" and points.requires_grad) else points.detach()
+        opts["planes"] = tangent_planes(points, normals, cameras, settings.occlusion_depth) if vis_points.requires_grad else None
         if backend == "cpp":
             images = _CppBlend.apply(splats.packed, attrs, vis_points, images.float(), frags_t, cam_t, bg, opts)
         else:

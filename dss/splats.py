@@ -25,7 +25,7 @@ import torch
 
 from .cameras import Cameras
 
-__all__ = ["Splats", "project_splats", "auto_sigma", "SPLAT_FIELDS"]
+__all__ = ["Splats", "project_splats", "auto_sigma", "tangent_planes", "SPLAT_FIELDS"]
 
 # Column layout of the packed (V, N, F) splat tensor shared by every rasteriser backend.
 SPLAT_FIELDS = ("u", "v", "conic_a", "conic_b2", "conic_c", "norm", "depth", "rx", "ry", "valid")
@@ -127,12 +127,49 @@ def project_splats(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
     return Splats(packed)
 
 
-def auto_sigma(points: torch.Tensor, k: int = 8, scale: float = 1.0) -> torch.Tensor:
+def tangent_planes(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, mode: str = "plane") -> torch.Tensor:
+    """Inverse-depth planes (V, N, 3) for the backward pass's occlusion test.
+
+    For each point and view, coefficients (A, B, C) with ``1 / z = A px + B py + C`` at pixel
+    centre (px, py): the depth the point's splat would have at that pixel, on its tangent plane
+    (for a plane, inverse depth is affine in screen space). ``mode="center"`` returns (0, 0, 1/z_k),
+    the centre depth at every pixel (the paper's text read literally). Why the plane: on a curved
+    surface, a point's centre depth differs from the surface depth a few pixels away by the slope
+    times the distance, so with centre depths the visibility gradient treats a point on the same
+    surface as occluded (case (b)) and pulls it toward the camera; summed over views, a convex
+    shape inflates instead of shrinking to a smaller target (measured in tests/test_optimize.py).
+    Planes through the camera centre (n . p = 0) fall back to the centre depth.
+    """
+    pc = cameras.world_to_camera(points.detach())  # (V,N,3)
+    z = pc[..., 2]
+    inv_z = torch.where(z > 0, 1.0 / z.clamp_min(1e-12), torch.zeros_like(z))
+    zero = torch.zeros_like(z)
+    if mode == "center":
+        return torch.stack([zero, zero, inv_z], -1).contiguous()
+    if mode != "plane":
+        raise ValueError(f"occlusion depth mode must be 'plane' or 'center', got {mode!r}")
+    n = torch.einsum("vij,nj->vni", cameras.R, normals.detach())
+    c0 = (n * pc).sum(-1)  # n . p in the camera frame
+    f = cameras.focal[:, None]
+    cx, cy = cameras.principal[:, None, 0], cameras.principal[:, None, 1]
+    ok = c0.abs() > 1e-12
+    c0s = torch.where(ok, c0, torch.ones_like(c0))
+    A = n[..., 0] / (f * c0s)
+    B = n[..., 1] / (f * c0s)
+    C = (n[..., 2] - n[..., 0] * cx / f - n[..., 1] * cy / f) / c0s
+    planes = torch.stack([torch.where(ok, A, zero), torch.where(ok, B, zero), torch.where(ok, C, inv_z)], -1)
+    return planes.float().contiguous()
+
+
+def auto_sigma(points: torch.Tensor, k: int = 8, scale: float = 1.0, max_ratio: float = 3.0) -> torch.Tensor:
     """Per-point object-space splat std from the local point spacing.
 
-    ``sigma_k = scale * mean distance of p_k to its k nearest neighbours`` (N,). The cutoff
-    ellipse reaches sqrt(2 C) standard deviations, so with the defaults (C = 1, scale = 1) a splat
-    covers its neighbours and a uniformly sampled surface renders without holes.
+    ``sigma_k = scale * mean distance of p_k to its k nearest neighbours`` (N,), capped at
+    ``max_ratio`` x the median over points. The cutoff ellipse reaches sqrt(2 C) standard
+    deviations, so with the defaults (C = 1, scale = 1) a splat covers its neighbours and a
+    uniformly sampled surface renders without holes. The cap keeps isolated points (outliers, or
+    points an optimisation step threw off the surface) from becoming discs that cover a large
+    part of the image (measured: they wreck sphere -> teapot at larger learning rates).
     """
     from .knn import knn
 
@@ -142,4 +179,6 @@ def auto_sigma(points: torch.Tensor, k: int = 8, scale: float = 1.0) -> torch.Te
     nb = knn(points.detach(), min(k, N - 1), exclude_self=True)
     dist = torch.where(nb.idx >= 0, nb.dist, torch.zeros_like(nb.dist))
     mean = dist.sum(1) / (nb.idx >= 0).sum(1).clamp_min(1)
+    if max_ratio is not None and max_ratio > 0:
+        mean = torch.minimum(mean, max_ratio * mean.median())
     return (mean * scale).clamp_min(1e-8).to(points.dtype)

@@ -23,6 +23,16 @@ front depth d0 and ``I_x`` the rendered value:
 Each move ``dp`` contributes ``(dL/dI . dI) dp / (|dp|^2 + eps)`` to dL/dp_k, and is dropped
 when ``dL/dI . dI >= 0`` (the change could not reduce the loss, Eq. filteredG).
 
+Occlusion test (cases (a)/(b)): z_k above is the depth of k's tangent plane at pixel x (the depth
+its splat would have there, ``planes`` from :func:`dss.splats.tangent_planes`, clamped to a slope
+of ``MAX_SLOPE``), not its centre depth; (a) moves toward q_x at that depth, (b) comes forward by
+``d0 - z_k``. The paper compares centre depths. On a curved surface the centre depth of a point a
+few pixels away differs from the surface depth at x by slope x distance, more than T, so a point
+of the visible surface counts as occluded there and case (b) pulls it toward the camera; every view
+does so, and a sphere that must shrink onto a smaller target inflates instead (measured: a step
+along the gradient raises the loss; tests/test_render_backward.py). ``planes=None`` (or
+``RenderSettings(occlusion_depth="center")``) gives the paper's literal rule.
+
 Deviation from the paper's text: Eq. gradcase writes the second visible-case term with
 ``|dp+|`` unsquared; we square it like every other term, which keeps the gradient's units
 consistent (the unsquared form is a typo as far as we can tell; the 1D figure is reproduced).
@@ -41,15 +51,29 @@ from .rasterizer.fragments import Fragments
 
 __all__ = ["visibility_grad_reference"]
 
+# Grazing tangent planes are clamped to this slope: |z_plane - z| <= MAX_SLOPE * (pixel distance) * z / f.
+MAX_SLOPE = 3.0
+
+
+def _plane_depth(pl, px, py, z, u, v, f):
+    """Depth of each point's tangent plane at pixel (px, py) (dss_cpu.cpp plane_depth)."""
+    iz = pl[:, 0] * px + pl[:, 1] * py + pl[:, 2]
+    zp = torch.where(iz > 0, 1.0 / torch.where(iz > 0, iz, torch.ones_like(iz)), z)
+    dmax = MAX_SLOPE * torch.sqrt((px - u) ** 2 + (py - v) ** 2) * z / f
+    return torch.minimum(torch.maximum(zp, z - dmax), z + dmax)
+
 
 def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: Fragments, images: torch.Tensor,
                               grad: torch.Tensor, cameras: Cameras, background: torch.Tensor, window: int = 4,
-                              stride: int = 1, cutoff: float = 1.0, eps: float = 1e-5, mode: str = "dss") -> torch.Tensor:
+                              stride: int = 1, cutoff: float = 1.0, eps: float = 1e-5, mode: str = "dss",
+                              planes: torch.Tensor | None = None) -> torch.Tensor:
     """dL/dp (N, 3) in world coordinates from the visibility term alone.
 
     Args:
         packed: (V, N, 10) splats; attrs: (V, N, C); frags: the forward cache; images: (V, H, W, C)
         rendered; grad: dL/dimages (V, H, W, C); background: (C,).
+        planes: (V, N, 3) inverse-depth planes of :func:`dss.splats.tangent_planes`; None: the
+            centre depth at every pixel.
     """
     V, N, _ = packed.shape
     _, H, W, K = frags.idx.shape
@@ -93,7 +117,9 @@ def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: 
         k_visible = (is_k & valid & (pd <= d0[:, None] + merge)).any(-1)
         rem = valid & ~is_k
         front_c = torch.where(rem, pd, torch.full_like(pd, float("inf"))).min(-1).values
-        zk = z[kk]
+        zc = z[kk]
+        zk = zc if planes is None else _plane_depth(planes[v, ks][kk], jj.float() + 0.5, ii.float() + 0.5, zc,
+                                                    u[kk], vv[kk], f)
         kase = torch.where(k_visible, 2, torch.where((nvalid == 0) | (zk <= d0 + merge), 0, 1))
         zf = torch.where(kase == 0, torch.minimum(zk, d0), d0)
         lim = torch.where(k_visible, front_c, zf)
@@ -128,8 +154,8 @@ def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: 
             qu = sk_kk[:, 2] * ux * ux + sk_kk[:, 3] * ux * uy + sk_kk[:, 4] * uy * uy
             r = torch.sqrt(2.0 * cutoff / qu.clamp_min(1e-20))
             for step in (-(r - sd).clamp_min(0), r + sd):
-                mx = step * ux * zk / f
-                my = step * uy * zk / f
+                mx = step * ux * zc / f
+                my = step * uy * zc / f
                 c2 = gd / (mx * mx + my * my + eps)
                 mm = torch.stack([mx, my, torch.zeros_like(mx)], -1)
                 acc = acc + torch.where(vis[:, None], c2[:, None] * mm, torch.zeros_like(mm))
@@ -142,7 +168,7 @@ def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: 
             gv = h * (0.5 * sk_kk[:, 3] * ddx + sk_kk[:, 4] * ddy)
             c = torch.where(kase == 2, -gd, gd)
             Xk, Yk = X[kk], Y[kk]
-            acc = torch.stack([c * f / zk * gu, c * f / zk * gv, c * (-f * Xk / (zk * zk) * gu - f * Yk / (zk * zk) * gv)], -1)
+            acc = torch.stack([c * f / zc * gu, c * f / zc * gv, c * (-f * Xk / (zc * zc) * gu - f * Yk / (zc * zc) * gv)], -1)
         else:
             raise ValueError(f"unknown gradient mode {mode!r}")
         acc_k = torch.zeros(len(ks), 3, device=dev).index_add_(0, kk, acc)

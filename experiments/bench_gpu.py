@@ -68,7 +68,7 @@ def _timed(fn, warmup: int, repeats: int) -> dict:
 def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, warmup: int, repeats: int) -> dict:
     """The CUDA kernels alone, on inputs prepared outside the timed region."""
     from dss.shading import shade
-    from dss.splats import project_splats
+    from dss.splats import project_splats, tangent_planes
 
     H, W = cams.image_size
     bg = torch.zeros(3, device=points.device)
@@ -84,7 +84,8 @@ def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, war
     idx, depth, rho, images, mask = mod.rasterize_forward(*fwd_args)
     g = torch.Generator(device=points.device).manual_seed(0)
     grad = torch.randn(images.shape, device=points.device, generator=g) / images.numel()
-    bwd_args = (packed, attrs, idx, depth, rho, images, grad, cams.R, cams.focal, cams.principal, bg,
+    planes = tangent_planes(points, normals, cams, settings.occlusion_depth)
+    bwd_args = (packed, attrs, idx, depth, rho, images, grad, cams.R, cams.focal, cams.principal, bg, planes,
                 settings.window, settings.window_stride, settings.cutoff, merge, settings.epsilon, 0)
     res = {
         "project_and_shade": _timed(project, warmup, repeats),

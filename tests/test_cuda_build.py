@@ -28,7 +28,7 @@ from scenes import random_scene
 
 from dss import _ext_cuda
 from dss.rasterizer import reference as ref
-from dss.splats import project_splats
+from dss.splats import project_splats, tangent_planes
 
 CSRC = Path(_ext_cuda.__file__).parent / "csrc"
 EMU = Path(__file__).parent / "cuda_emu"
@@ -54,7 +54,8 @@ def make_scene(seed: int, n: int, views: int, size: tuple[int, int], K: int, C: 
     g = torch.Generator().manual_seed(seed + 1000)
     attrs = torch.rand(views, n, C, generator=g)
     bg = torch.rand(C, generator=g)
-    return dict(packed=packed, attrs=attrs, bg=bg, cams=cams, H=size[0], W=size[1], K=K, merge=merge, cutoff=2.0)
+    planes = tangent_planes(pts, nrm, cams)
+    return dict(packed=packed, attrs=attrs, bg=bg, planes=planes, cams=cams, H=size[0], W=size[1], K=K, merge=merge, cutoff=2.0)
 
 
 SCENES = {
@@ -91,7 +92,7 @@ def backward_args(s: dict, cache, grad, mode: int, window: int = 4, stride: int 
     idx, depth, rho, images, _ = cache
     c = s["cams"]
     return (s["packed"], s["attrs"], idx, depth, rho, images, grad, c.R, c.focal, c.principal, s["bg"],
-            window, stride, s["cutoff"], s["merge"], 1e-5, mode)
+            s["planes"], window, stride, s["cutoff"], s["merge"], 1e-5, mode)
 
 
 def random_grad(images: torch.Tensor, seed: int) -> torch.Tensor:
@@ -170,7 +171,7 @@ class EmulatedKernels:
             "emu_bin_count": [P, I64, I64, I, I, P],
             "emu_bin_fill": [P, I64, I64, I, I, P, P],
             "emu_rasterize_tiles": [P, I64, I64, I, I, I, P, P, P, F, F, P, I, P, P, P, P, P, P],
-            "emu_visibility": [P] * 11 + [I64, I64, I, I, I, I, I, I, F, F, F, I, P],
+            "emu_visibility": [P] * 12 + [I64, I64, I, I, I, I, I, I, F, F, F, I, P],
             "emu_reduce_views": [P, P, I64, I64, P],
         }
         for name, args in sig.items():
@@ -214,8 +215,9 @@ class EmulatedKernels:
         return [idx, depth, rho, images, mask]
 
     def visibility_backward(self, packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
-                            window, stride, cutoff, merge, eps, mode):
-        ts = [t.contiguous() for t in (packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background)]
+                            planes, window, stride, cutoff, merge, eps, mode):
+        ts = [t.contiguous() for t in (packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
+                                       planes)]
         V, N = packed.shape[:2]
         _, H, W, K = idx.shape
         C = attrs.shape[2]
@@ -429,7 +431,7 @@ def cuda_kernel():
 
 def _to(s: dict, device) -> dict:
     out = dict(s)
-    for k in ("packed", "attrs", "bg"):
+    for k in ("packed", "attrs", "bg", "planes"):
         out[k] = s[k].to(device)
     out["cams"] = s["cams"].to(device)
     return out

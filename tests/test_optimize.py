@@ -24,7 +24,7 @@ def _sphere_run(schedule="alternating", **kw):
     def ref(cams):
         return render(tp, tn, cams, st, shading=SUN).images
 
-    base = dict(cycles=2, normal_steps=2, point_steps=18, lr_points=2.0, lr_normals=200.0, momentum=0.0, lr_scale=1.0,
+    base = dict(cycles=2, normal_steps=2, point_steps=18, lr_points=1.0, lr_normals=200.0, momentum=0.0, lr_scale=1.0,
                 schedule=schedule, projection_weight=0.0, repulsion_weight=0.0)
     base.update(kw)
     opt = MultiViewOptimizer(sp, sn, ref, OptimizerConfig(**base), st, center=(0, 0, 0), radius=0.5,

@@ -49,6 +49,20 @@ inline float quad(const float* s, float dx, float dy) {
   return (t1 + t2) + t3;
 }
 
+// Depth of point k's tangent plane at the pixel centre (px, py), the depth its splat would have
+// there (the backward pass's occlusion test, cases (a)/(b)). For a plane 1/z is affine in screen
+// space: 1/z = pl[0] px + pl[1] py + pl[2] (computed in dss/render.py; (0, 0, 1/z) reproduces
+// the centre depth). Grazing planes are clamped to a slope of kMaxSlope: |zp - z| <= kMaxSlope *
+// (pixel distance) * z / f.
+constexpr float kMaxSlope = 3.f;
+inline float plane_depth(const float* pl, float px, float py, float z, float dist_px, float f) {
+  const float iz = pl[0] * px + pl[1] * py + pl[2];
+  float zp = iz > 0.f ? 1.f / iz : z;
+  const float dmax = kMaxSlope * dist_px * z / f;
+  zp = std::min(std::max(zp, z - dmax), z + dmax);
+  return zp;
+}
+
 // Run fn(item) for item in [0, n) on all intra-op threads, items handed out dynamically.
 template <typename F>
 void dynamic_for(int64_t n, int64_t chunk, const F& fn) {
@@ -221,9 +235,10 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
 torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
                                   torch::Tensor rho, torch::Tensor images, torch::Tensor grad, torch::Tensor R,
                                   torch::Tensor focal, torch::Tensor principal, torch::Tensor background,
-                                  int64_t window, int64_t stride, double cutoff_d, double merge_d, double eps_d,
-                                  int64_t mode) {
+                                  torch::Tensor planes, int64_t window, int64_t stride, double cutoff_d,
+                                  double merge_d, double eps_d, int64_t mode) {
   packed = packed.contiguous().to(torch::kFloat32);
+  planes = planes.contiguous().to(torch::kFloat32);
   attrs = attrs.contiguous().to(torch::kFloat32);
   idx = idx.contiguous();
   depth = depth.contiguous();
@@ -238,8 +253,10 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const int64_t C = attrs.size(2);
   TORCH_CHECK(C <= 16, "at most 16 channels");
   TORCH_CHECK(stride >= 1, "window stride must be >= 1");
+  TORCH_CHECK(planes.numel() == V * N * 3, "planes must be (V,N,3)");
   const float cutoff = (float)cutoff_d, merge = (float)merge_d, eps = (float)eps_d;
   auto out = torch::zeros({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
+  const float* PL = planes.data_ptr<float>();
   float* G = out.data_ptr<float>();
   const float* P = packed.data_ptr<float>();
   const float* A = attrs.data_ptr<float>();
@@ -308,6 +325,9 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
           for (int e = 0; e < K && pi[e] >= 0; ++e)
             if (pi[e] == (int32_t)k) { ek = e; break; }
           const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
+          const float px = (float)j + 0.5f, py = (float)i + 0.5f;
+          const float zp = plane_depth(PL + (v * N + k) * 3, px, py, z,
+                                       std::sqrt((px - u) * (px - u) + (py - vv) * (py - vv)), f);
           float num[16], den;
           int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
           if (k_visible) {
@@ -329,14 +349,14 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
               }
             }
           } else {
-            kase = (pi[0] < 0 || z <= d0 + merge) ? 0 : 1;
+            kase = (pi[0] < 0 || zp <= d0 + merge) ? 0 : 1;
             den = nk;
             for (int64_t ch = 0; ch < C; ++ch) num[ch] = nk * wk[ch];
-            if (kase == 1 || z >= d0) {  // merges with the current visible set
+            if (kase == 1 || zp >= d0) {  // merges with the current visible set
               den += sm[1];
               for (int64_t ch = 0; ch < C; ++ch) num[ch] += sm[2 + ch];
-            } else if (pi[0] >= 0) {  // k becomes the front: entries beyond z + T drop out
-              const float lim = z + merge;
+            } else if (pi[0] >= 0) {  // k becomes the front: entries beyond zp + T drop out
+              const float lim = zp + merge;
               for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
                 den += pr[e];
                 const float* a = A + (v * N + pi[e]) * C;
@@ -350,7 +370,6 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
             const float inew = den > 0.f ? num[ch] / den : BG[ch];
             gd += gp[ch] * (inew - ip[ch]);
           }
-          const float px = (float)j + 0.5f, py = (float)i + 0.5f;
           if (mode == 0) {  // dss: linearised step between the two visibility states
             if (!(gd < 0.f)) continue;  // Eq. filteredG
             if (kase == 2) {
@@ -368,8 +387,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
                 acc[1] += coef * my;
               }
             } else {
-              const float zt = kase == 1 ? d0 : z;
-              const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - z;
+              const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
+              const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - zp;
               const float coef = gd / (mx * mx + my * my + mz * mz + eps);
               acc[0] += coef * mx;
               acc[1] += coef * my;

@@ -75,6 +75,18 @@ __device__ __forceinline__ float quad(float a, float b2, float c, float dx, floa
   return (t1 + t2) + t3;
 }
 
+// dss_cpu.cpp plane_depth(): the depth of point k's tangent plane at pixel (px, py), clamped.
+constexpr float kMaxSlope = 3.f;
+__device__ __forceinline__ float plane_depth(const float* pl, float px, float py, float z, float dist_px, float f) {
+  const float iz = pl[0] * px + pl[1] * py + pl[2];
+  float zp = iz > 0.f ? 1.f / iz : z;
+  const float dmax = kMaxSlope * dist_px * z / f;
+  const float lo = z - dmax, hi = z + dmax;
+  zp = (zp < lo) ? lo : zp;  // std::max(zp, lo)
+  zp = (hi < zp) ? hi : zp;  // std::min(zp, hi)
+  return zp;
+}
+
 // Strict total order of cache entries: depth, then point index.
 __device__ __forceinline__ bool before(float za, int ia, float zb, int ib) {
   return za < zb || (za == zb && ia < ib);
@@ -247,9 +259,9 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
                                   const float* __restrict__ Rh, const float* __restrict__ IMG,
                                   const float* __restrict__ GR, const float* __restrict__ Rm,
                                   const float* __restrict__ F, const float* __restrict__ PP,
-                                  const float* __restrict__ BG, int64_t V, int64_t N, int H, int W, int K, int C,
-                                  int window, int stride, float cutoff, float merge, float eps, int mode,
-                                  double* __restrict__ partial) {
+                                  const float* __restrict__ BG, const float* __restrict__ PL, int64_t V,
+                                  int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
+                                  float merge, float eps, int mode, double* __restrict__ partial) {
   const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (item >= V * N) return;
   const int64_t v = item / N;
@@ -288,6 +300,8 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
       bool k_visible = false;
       for (int e = 0; e < nvalid; ++e)
         if (pi[e] == k && pd[e] <= d0 + merge) k_visible = true;
+      const float px = (float)j + 0.5f, py = (float)i + 0.5f;
+      const float zp = plane_depth(PL + item * 3, px, py, z, sqrtf((px - u) * (px - u) + (py - vv) * (py - vv)), f);
       float num[CMAX], den = 0.f;
 #pragma unroll
       for (int ch = 0; ch < CMAX; ++ch) num[ch] = 0.f;
@@ -309,8 +323,8 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
             if (ch < C) num[ch] += pr[e] * a[ch];
         }
       } else {
-        kase = (nvalid == 0 || z <= d0 + merge) ? 0 : 1;
-        const float zf = kase == 0 ? ((d0 < z) ? d0 : z) : d0;  // std::min(z, d0)
+        kase = (nvalid == 0 || zp <= d0 + merge) ? 0 : 1;
+        const float zf = kase == 0 ? ((d0 < zp) ? d0 : zp) : d0;  // std::min(zp, d0)
         den = nk;
 #pragma unroll
         for (int ch = 0; ch < CMAX; ++ch)
@@ -333,7 +347,6 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
           gd += gp[ch] * (inew - ip[ch]);
         }
       }
-      const float px = (float)j + 0.5f, py = (float)i + 0.5f;
       if (mode == 0) {  // dss: linearised step between the two visibility states
         if (!(gd < 0.f)) continue;  // Eq. filteredG
         if (kase == 2) {
@@ -353,8 +366,8 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
             acc[1] += coef * my;
           }
         } else {
-          const float zt = kase == 1 ? d0 : z;
-          const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - z;
+          const float zt = kase == 1 ? d0 : zp;
+          const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - zp;
           const float coef = gd / (mx * mx + my * my + mz * mz + eps);
           acc[0] += coef * mx;
           acc[1] += coef * my;
@@ -453,8 +466,9 @@ cudaError_t dss_cuda::launch_rasterize_tiles(const float* packed, int64_t V, int
 cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs, const int32_t* idx,
                                         const float* depth, const float* rho, const float* images,
                                         const float* grad, const float* R, const float* focal,
-                                        const float* principal, const float* background, int64_t V, int64_t N,
-                                        int H, int W, int K, int C, int window, int stride, float cutoff,
+                                        const float* principal, const float* background, const float* planes,
+                                        int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
+                                        float cutoff,
                                         float merge, float eps, int mode, double* partial, cudaStream_t stream) {
   if (V * N == 0) return cudaSuccess;
   if (K < 1 || K > kMaxK || C < 1 || C > kMaxC || stride < 1 || window < 0) return cudaErrorInvalidValue;
@@ -462,12 +476,12 @@ cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs,
   // Channel arrays sized at compile time so they stay in registers for the usual C <= 4.
   if (C <= 4)
     DSS_LAUNCH(visibility_kernel<4>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R, focal,
-                                                          principal, background, V, N, H, W, K, C, window,
-                                                          stride, cutoff, merge, eps, mode, partial);
+                                                          principal, background, planes, V, N, H, W, K, C,
+                                                          window, stride, cutoff, merge, eps, mode, partial);
   else
     DSS_LAUNCH(visibility_kernel<kMaxC>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R,
-                                                              focal, principal, background, V, N, H, W, K, C,
-                                                              window, stride, cutoff, merge, eps, mode, partial);
+                                                              focal, principal, background, planes, V, N, H, W,
+                                                              K, C, window, stride, cutoff, merge, eps, mode, partial);
   return cudaGetLastError();
 }
 

@@ -45,8 +45,8 @@ cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, in
 // the world-space contribution of view v (zero where the splat is not valid). mode 0: dss, 1: rbf.
 cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
                               const float* rho, const float* images, const float* grad, const float* R,
-                              const float* focal, const float* principal, const float* background, int64_t V,
-                              int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
+                              const float* focal, const float* principal, const float* background,
+                              const float* planes, int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
                               float merge, float eps, int mode, double* partial, cudaStream_t stream);
 
 // out (N, 3) f32 = sum over views v = 0..V-1 in order (double) of partial[v, k], skipping views

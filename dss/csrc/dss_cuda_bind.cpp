@@ -106,7 +106,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
 torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
                                   torch::Tensor rho, torch::Tensor images, torch::Tensor grad, torch::Tensor R,
                                   torch::Tensor focal, torch::Tensor principal, torch::Tensor background,
-                                  int64_t window, int64_t stride, double cutoff_d, double merge_d, double eps_d,
+                                  torch::Tensor planes, int64_t window, int64_t stride, double cutoff_d, double merge_d, double eps_d,
                                   int64_t mode) {
   TORCH_CHECK(packed.dim() == 3 && packed.size(2) == dss_cuda::kFields, "packed splats must be (V,N,10)");
   TORCH_CHECK(!kOnGpu || packed.is_cuda(), "dss_cuda: packed splats must be a CUDA tensor");
@@ -134,6 +134,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   focal = prep(focal, dev, torch::kFloat32, "focal");
   principal = prep(principal, dev, torch::kFloat32, "principal");
   background = prep(background, dev, torch::kFloat32, "background");
+  planes = prep(planes, dev, torch::kFloat32, "planes");
+  TORCH_CHECK(planes.numel() == V * N * 3, "planes must be (V,N,3)");
   TORCH_CHECK(depth.sizes() == idx.sizes() && rho.sizes() == idx.sizes(), "depth and rho must be shaped like idx");
   TORCH_CHECK(images.numel() == V * H * W * C && grad.numel() == V * H * W * C, "images and grad must be (V,H,W,C)");
   TORCH_CHECK(R.numel() == V * 9 && focal.numel() == V && principal.numel() == V * 2,
@@ -147,7 +149,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
                    packed.data_ptr<float>(), attrs.data_ptr<float>(), idx.data_ptr<int32_t>(),
                    depth.data_ptr<float>(), rho.data_ptr<float>(), images.data_ptr<float>(), grad.data_ptr<float>(),
                    R.data_ptr<float>(), focal.data_ptr<float>(), principal.data_ptr<float>(),
-                   background.data_ptr<float>(), V, N, (int)H, (int)W, (int)K, (int)C, (int)window, (int)stride,
+                   background.data_ptr<float>(), planes.data_ptr<float>(), V, N, (int)H, (int)W, (int)K, (int)C, (int)window, (int)stride,
                    (float)cutoff_d, (float)merge_d, (float)eps_d, (int)mode, partial.data_ptr<double>(), stream),
                "visibility");
   check_launch(dss_cuda::launch_reduce_views(packed.data_ptr<float>(), partial.data_ptr<double>(), V, N,

@@ -24,10 +24,10 @@ int emu_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W,
 
 int emu_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth, const float* rho,
                    const float* images, const float* grad, const float* R, const float* focal, const float* principal,
-                   const float* background, int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
+                   const float* background, const float* planes, int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
                    float cutoff, float merge, float eps, int mode, double* partial) {
   return dss_cuda::launch_visibility(packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
-                                     V, N, H, W, K, C, window, stride, cutoff, merge, eps, mode, partial, nullptr);
+                                     planes, V, N, H, W, K, C, window, stride, cutoff, merge, eps, mode, partial, nullptr);
 }
 
 int emu_reduce_views(const float* packed, const double* partial, int64_t V, int64_t N, float* out) {
