@@ -83,6 +83,7 @@ class OptimizerConfig:
     lr_normals: float = 5000.0
     lr_scale: float = 0.01
     lr_decay: float = 1.0  # learning rates x lr_decay after every cycle
+    bold_driver: bool = False  # point lr x0.5 when a point step raised the loss, x1.1 (up to the set lr) when not
     momentum: float = 0.9
     nesterov: bool = True
     optimizer: str = "sgd"  # "sgd" (paper: Nesterov momentum) | "adam" (scale-free steps, an option)
@@ -107,6 +108,7 @@ class OptimizerConfig:
     window_samples: int = 8
     error_aware_cycles: int = 0
     error_aware_distance: float = 0.5
+    grad_smoothing: int = 0  # passes of neighbour averaging of the image gradient on the points
     normal_refresh: str = "none"  # "none" | "pca": re-fit normals to the points at each cycle start
     normal_refresh_k: int = 16
     seed: int = 0
@@ -283,6 +285,8 @@ class MultiViewOptimizer:
                 self._img_grad_scale = float(g_img.double().norm(dim=1).mean())
             if not image_moves_points:
                 g_img = None
+            elif self.cfg.grad_smoothing > 0:
+                g_img = self._smooth(g_img, self.cfg.grad_smoothing)
         occl = occlusion_counts(out).detach()
         g_reg = self._regularizer_grads(occl)
         # Points move in every step: by image + regulariser gradients in point steps, by the
@@ -324,6 +328,34 @@ class MultiViewOptimizer:
         self._neighbors = find_neighbors(p, self.cfg.reg_k)
         s = self.settings
         self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
+
+    def _bold_driver(self, worse: bool):
+        """Halve the point learning rate after a point step that raised the image loss (and drop
+        its momentum); otherwise grow it by 10% up to its scheduled value. Large learning rates
+        are what large deformations need early on, and what overshoots on other shapes (measured:
+        sphere -> bunny's loss rises by a third in the first cycle at the teapot's rate)."""
+        for group in self.opt_p.param_groups:
+            cap = group.setdefault("scheduled_lr", group["lr"])
+            group["lr"] = group["lr"] * 0.5 if worse else min(cap, group["lr"] * 1.1)
+        if worse:
+            self.opt_p.state.clear()
+        self.history.setdefault("lr_points", []).append(self.opt_p.param_groups[0]["lr"])
+
+    def _smooth(self, g: torch.Tensor, passes: int) -> torch.Tensor:
+        """Average a per-point field over each point and its kNN (the cycle's neighbour lists).
+
+        The visibility gradient moves single silhouette points, each toward the pixels it could
+        cover; averaging over neighbours moves patches of surface together, a cheap form of the
+        smoothed ("Sobolev") gradients of mesh inverse rendering. Measured on sphere -> teapot
+        (8K points, 128 px, 320 steps): Chamfer x1e4 24.9 without, 18.8 with two passes.
+        """
+        nb = self._neighbors
+        idx = nb.idx.long()
+        ok = (idx >= 0).to(g.dtype)[..., None]
+        for _ in range(passes):
+            s = (g[idx.clamp_min(0)] * ok).sum(1) + g
+            g = s / (ok.sum(1) + 1)
+        return g
 
     def _refit_normals(self, p: torch.Tensor):
         """Normals := PCA normals of the current points, signed to agree with the current normals.
@@ -374,9 +406,18 @@ class MultiViewOptimizer:
                 for opt in (self.opt_p, self.opt_n):
                     for group in opt.param_groups:
                         group["lr"] *= c.lr_decay
+                        if "scheduled_lr" in group:
+                            group["scheduled_lr"] *= c.lr_decay
             window, stride = window_for_cycle(c, cycle)
+            prev_point_loss = None
             for kind in self._cycle_plan():
                 loss, img_loss = self._step(kind, cams, target, window, stride)
+                if c.bold_driver and kind in ("points", "joint") and math.isfinite(img_loss):
+                    # the loss of step t is measured before its update: it judges step t-1's
+                    # update (same cameras and references within a cycle)
+                    if prev_point_loss is not None:
+                        self._bold_driver(img_loss > prev_point_loss * (1 + 1e-3))
+                    prev_point_loss = img_loss
                 step += 1
                 h = self.history
                 h["step"].append(step)
