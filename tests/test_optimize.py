@@ -77,7 +77,7 @@ def _grid_run(repulsion_weight):
 
 def test_repulsion_keeps_a_2d_grid_spread(cpp_backend):
     without = _grid_run(0.0)
-    with_rep = _grid_run(0.5)
+    with_rep = _grid_run(0.05)  # the default; the paper warns that gamma_r > 0.1 repels points off
     # At the start 47% of the grid lies inside the target disk. With repulsion the points fill
     # it evenly; without, they bunch up: nearest-neighbour spacing is less uniform.
     assert with_rep["in_disk"] > 0.7, with_rep
@@ -149,3 +149,34 @@ def test_deform_app_rejects_unknown_target(tmp_path):
         cfg = compose("deform", overrides=[f"target.path={tmp_path / 'missing.ply'}", f"+out_dir={tmp_path}"])
     with pytest.raises(PointCloudError, match="missing.ply: no such file"):
         deform.run(cfg)
+
+
+def test_large_deformation_options():
+    """bold driver halves the point lr after a worse step and regrows it up to the schedule;
+    gradient smoothing keeps a constant field and damps noise; regulariser gammas are fixed
+    after the first step; bad option values are refused."""
+    sp, tp, _ = _sphere_run(cycles=1, normal_steps=0, point_steps=1)
+    cfg = OptimizerConfig(cycles=1, normal_steps=1, point_steps=3, lr_scale=1.0, bold_driver=True, grad_smoothing=2,
+                          normal_refresh="pca", projection_weight=0.1, repulsion_weight=0.05)
+    tp2, tn2 = sphere_points(1000, 0.35)
+    st = RenderSettings()
+    opt = MultiViewOptimizer(sp, sp / sp.norm(dim=1, keepdim=True), lambda c: render(tp2, tn2, c, st, shading=SUN).images,
+                             cfg, st, center=(0, 0, 0), radius=0.5, image_size=48, shading=SUN)
+    res = opt.run()
+    assert len(opt._reg_gamma) == 2
+    gam = dict(opt._reg_gamma)
+    lr0 = opt.opt_p.param_groups[0]["lr"]
+    opt._bold_driver(True)
+    assert opt.opt_p.param_groups[0]["lr"] == pytest.approx(lr0 * 0.5)
+    for _ in range(60):  # x1.1 per step from at most a 2^k reduction
+        opt._bold_driver(False)
+    assert opt.opt_p.param_groups[0]["lr"] == pytest.approx(opt.opt_p.param_groups[0]["scheduled_lr"])
+    opt._step("points", opt.sampler.sample(), torch.zeros(cfg.views, 48, 48, 3), 4, 1)
+    assert opt._reg_gamma == gam  # calibrated once
+    const = torch.ones(len(res.points), 3)
+    assert torch.allclose(opt._smooth(const, 2), const)
+    noise = torch.randn(len(res.points), 3, generator=torch.Generator().manual_seed(0))
+    assert opt._smooth(noise, 2).std() < 0.6 * noise.std()
+    assert torch.allclose(res.normals.norm(dim=1), torch.ones(len(res.normals)), atol=1e-5)
+    with pytest.raises(ValueError, match="normal_refresh"):
+        OptimizerConfig(normal_refresh="mls")
