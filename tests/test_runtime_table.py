@@ -1,0 +1,129 @@
+"""``dss-runtime-table --quick``: the paper's runtime table, structure and sanity of the numbers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from experiments import runtime_table as rt
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory, cpp_backend):
+    out = tmp_path_factory.mktemp("rt") / "runtime_table"
+    result = rt.run(["--quick", "--out", str(out), "--no-progress"])
+    return out, result
+
+
+def _measured(col: dict) -> bool:
+    return col.get("status") == "measured"
+
+
+def test_writes_json_and_markdown(quick):
+    out, result = quick
+    js = out.with_name(out.name + ".json")
+    md = out.with_name(out.name + ".md")
+    assert js.is_file() and md.is_file()
+    on_disk = json.loads(js.read_text())
+    assert [w["key"] for w in on_disk["workloads"]] == ["deformation", "filtering", "denoising"]
+    assert on_disk["settings"]["quick"] is True
+    assert "estimated" in on_disk["total_note"] and "not a full run" in on_disk["total_note"]
+    text = md.read_text()
+    assert "paper 1080Ti" in text and "estimated" in text
+    for w in on_disk["workloads"]:
+        assert w["application"] in text
+
+
+def test_paper_columns_present(quick):
+    _, result = quick
+    assert "1080Ti" in result["columns"]["paper_1080ti"]
+    paper = {w.key: w for w in rt.WORKLOADS}
+    for row in result["workloads"]:
+        p = row["paper_1080ti"]
+        w = paper[row["key"]]
+        assert (p["forward_ms"], p["backward_ms"], p["total_s"]) == (w.paper_forward_ms, w.paper_backward_ms, w.paper_total_s)
+        assert p["forward_ms"] > 0 and p["backward_ms"] > p["forward_ms"]  # the paper's backward is the slower pass
+        assert (row["position_steps"], row["normal_steps"]) == (w.position_steps, w.normal_steps)
+
+
+def test_measured_times_positive_and_finite(quick):
+    _, result = quick
+    rows = result["workloads"]
+    assert all(_measured(r["cpp"]) for r in rows), [r["cpp"].get("status") for r in rows]
+    # the reference runs on the small quick sizes only
+    assert _measured(rows[0]["reference"])
+    assert rows[-1]["reference"]["status"].startswith("skipped")
+    for r in rows:
+        for b in rt.BACKENDS:
+            col = r[b]
+            if not _measured(col):
+                continue
+            for key in ("forward_ms", "backward_ms", "total_s_estimated", "peak_memory_mb"):
+                assert math.isfinite(col[key]) and col[key] >= 0, (r["key"], b, key, col[key])
+            assert col["forward_ms"] > 0 and col["backward_ms"] > 0
+            for kind in rt.KINDS:
+                pk = col["per_kind"][kind]
+                assert len(pk["forward_ms_runs"]) == pk["measured"] >= 1
+                assert all(math.isfinite(t) and t > 0 for t in pk["forward_ms_runs"] + pk["backward_ms_runs"])
+            # the total is the step-weighted per-kind sum
+            est = sum((col["per_kind"][k]["forward_ms"] + col["per_kind"][k]["backward_ms"])
+                      * (r["position_steps"] if k == "position" else r["normal_steps"]) for k in rt.KINDS) / 1e3
+            assert col["total_s_estimated"] == pytest.approx(est)
+
+
+def test_cuda_column_without_gpu(quick):
+    _, result = quick
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present: the CUDA column is measured or names the device")
+    assert result["columns"]["cuda"] == rt.NOT_MEASURED_NO_GPU
+    for r in result["workloads"]:
+        assert r["cuda"]["status"] == "not measured (no GPU)"
+
+
+def test_bad_points_count_is_rejected():
+    with pytest.raises(SystemExit):
+        rt.parse_args(["--workloads", "deformation", "filtering", "--points", "100"])
+
+
+def test_floor_comparison_and_targets(tmp_path, cpp_backend):
+    """With a perf_counts JSON for the workload, the ratios and the issue's targets are derived."""
+    counts = {"machine": {"torch_threads": 1}, "rates": {"flops_per_s": 1e10, "bytes_per_s": 1e10},
+              "workloads": [{"points": 20000, "views": 2, "image_size": 32, "flops": 2e6, "bytes": 4e6,
+                             "floor_ms": 0.4}]}
+    cpath = tmp_path / "counts.json"
+    cpath.write_text(json.dumps(counts))
+    result = rt.run(["--quick", "--workloads", "filtering", "--points", "20000",
+                     "--counts", str(cpath), "--out", str(tmp_path / "rt"), "--no-progress"])
+    fl = result["floor"]
+    (w,) = fl["workloads"]
+    cpp = result["workloads"][0]["cpp"]["per_kind"]
+    for kind in rt.KINDS:
+        step = cpp[kind]["forward_ms"] + cpp[kind]["backward_ms"]
+        assert w["measured"]["cpp"][kind]["ratio_step_to_floor"] == pytest.approx(step / 0.4)
+    h100 = 1e3 * max(2e6 / rt.H100_PUBLISHED["flops_per_s"], 4e6 / rt.H100_PUBLISHED["bytes_per_s"])
+    assert w["h100_published_floor_ms"] == pytest.approx(h100)
+    cpu_targets = [t for t in fl["targets"] if t["target"].startswith("2 CPU cores")]
+    assert len(cpu_targets) == len(rt.KINDS)
+    for t in cpu_targets:
+        assert t["met"] == (t["measured_ms"] <= 250 and t["measured_ms"] <= 4 * 0.4)
+    (gpu,) = [t for t in fl["targets"] if "H100" in t["target"]]
+    if not torch.cuda.is_available():
+        assert gpu["met"] is None and gpu["status"] == "not measured (no GPU)"
+    assert "Targets (issue 5)" in (tmp_path / "rt.md").read_text()
+
+
+def test_first_views_match_dss_bench_cameras():
+    """The sampler is set up like dss-bench's cameras_for: its first view set is the same."""
+    from dss.views import SphereViewSampler
+    from experiments.bench_render import cameras_for
+
+    pts = torch.rand(200, 3) - 0.5
+    radius = float(pts.norm(dim=1).max())
+    ours = SphereViewSampler((0.0, 0.0, 0.0), radius, views=4, image_size=64, fov_deg=rt.FOV_DEG,
+                             jitter=rt.JITTER, seed=3).sample()
+    bench = cameras_for(pts, 4, 64, seed=3)
+    for a, b in ((ours.R, bench.R), (ours.t, bench.t), (ours.focal, bench.focal), (ours.principal, bench.principal)):
+        torch.testing.assert_close(a, b)
