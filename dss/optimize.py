@@ -252,16 +252,12 @@ class MultiViewOptimizer:
                 # normalises the term's magnitude: once the surface is smooth its tiny residual
                 # gradient is blown up to the same size and scatters the points (measured:
                 # denoising the example, Chamfer 0.93 after 8 cycles, 3.6 after 16).
-                key = id(term)
-                if key not in self._reg_gamma:
-                    ref = self._img_grad_scale
-                    mag = float(g.double().norm(dim=1).mean())
-                    if ref is None or mag <= 0:
-                        g = torch.zeros_like(g)
-                        total = g if total is None else total + g
-                        continue
-                    self._reg_gamma[key] = weight * ref / mag
-                g = g * self._reg_gamma[key]
+                gamma = self._reg_gamma.get(id(term))
+                if gamma is None:
+                    ref, mag = self._img_grad_scale, float(g.double().norm(dim=1).mean())
+                    if ref is not None and mag > 0:
+                        gamma = self._reg_gamma[id(term)] = weight * ref / mag
+                g = g * gamma if gamma is not None else torch.zeros_like(g)
             else:
                 g = weight * g
             total = g if total is None else total + g

@@ -40,16 +40,14 @@ def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: in
     from data_prep.render_spec import load_render_spec
     from dss.metrics import evaluate
     from dss.optimize import MultiViewOptimizer, OptimizerConfig
-    from dss.pointcloud import estimate_normals, load_ply
+    from dss.pointcloud import estimate_normals, load_ply, normalize_unit_diagonal
     from experiments.reference_generators import SpecViewSampler
 
     clean = load_ply(clean_path)
     noisy = load_ply(noisy_path, compute_normals=False)
     # one normalisation for both clouds (the input's, as dss-denoise does)
-    p = noisy.points
-    center = (p.max(0).values + p.min(0).values) / 2
-    scale = float((p.max(0).values - p.min(0).values).norm())
-    cp, npt = (clean.points - center) / scale, (p - center) / scale
+    npt, center, scale = normalize_unit_diagonal(noisy.points)
+    cp = (clean.points - center) / scale
     cn = clean.normals
     nn_ = estimate_normals(npt, k=16)  # as dss-denoise: never the file's (ground-truth) normals
     spec = load_render_spec(image_size=[image_size, image_size])
