@@ -20,6 +20,7 @@ import torch
 
 from . import _ext, _ext_cuda
 from .cameras import Cameras
+from .ordering import SORT_MIN_POINTS, spatial_order
 from .pointcloud import bbox_diagonal
 from .rasterizer import reference as ref_raster
 from .rasterizer.fragments import Fragments
@@ -58,6 +59,9 @@ class RenderSettings:
         occlusion_depth: the depth a point is compared at in the visibility gradient's occlusion
             test, cases (a)/(b): "plane" (default), the depth of its tangent plane at the pixel;
             "center", its centre depth at every pixel (see :func:`dss.splats.tangent_planes`).
+        spatial_sort: render a Morton-sorted copy of the points (memory locality in the kernels,
+            :mod:`dss.ordering`) and return everything in the caller's order. Results are the same
+            up to the order of depth ties and float summation order.
     """
 
     K: int = 5
@@ -76,6 +80,7 @@ class RenderSettings:
     window_stride: int = 1
     epsilon: float = 1e-5
     occlusion_depth: str = "plane"
+    spatial_sort: bool = True
 
     def __post_init__(self):
         if not 1 <= self.K <= 8:
@@ -94,26 +99,53 @@ class RenderSettings:
             raise ValueError(f"sigma must be a number or 'auto', got {self.sigma!r}")
 
 
-@dataclass
 class RenderOutput:
     """Result of :func:`render`.
 
     Attributes:
         images: (V, H, W, C) float32.
         mask: (V, H, W) bool, pixels where a splat is visible.
-        fragments: the per-pixel top-K cache (index, weight, depth).
-        splats: the screen-space splats (packed (V, N, 10)).
+        fragments: the per-pixel top-K cache (index, weight, depth); indices in the caller's order.
+        splats: the screen-space splats (packed (V, N, 10)), in the caller's point order.
         attributes: (V, N, C) per-view point attributes that were blended.
         sigma: (N,) or scalar splat std used.
+        point_order: the (N,) permutation the kernels rendered in (``settings.spatial_sort``), or
+            None. ``fragments``, ``splats`` and ``attributes`` are mapped back to the caller's
+            order on first access (the optimiser's image loss never pays for it).
     """
 
-    images: torch.Tensor
-    mask: torch.Tensor
-    fragments: Fragments
-    splats: Splats
-    attributes: torch.Tensor
-    sigma: torch.Tensor
-    extras: dict = field(default_factory=dict)
+    def __init__(self, images: torch.Tensor, mask: torch.Tensor, fragments: Fragments, splats: Splats,
+                 attributes: torch.Tensor, sigma: torch.Tensor, extras: dict | None = None,
+                 point_order: torch.Tensor | None = None):
+        self.images, self.mask, self.sigma = images, mask, sigma
+        self.extras = {} if extras is None else extras
+        self.point_order = point_order
+        self._sorted = (fragments, splats, attributes)
+        self._caller: tuple | None = None if point_order is not None else self._sorted
+
+    def _in_caller_order(self) -> tuple:
+        if self._caller is None:
+            frags, splats, attrs = self._sorted
+            order = self.point_order
+            inv = torch.empty_like(order)
+            inv[order] = torch.arange(order.numel(), device=order.device)
+            idx = frags.idx
+            idx = torch.where(idx >= 0, order.to(idx.dtype)[idx.clamp_min(0).long()], idx)
+            self._caller = (Fragments(idx, frags.depth, frags.rho, frags.merge_threshold),
+                            Splats(splats.packed[:, inv]), attrs[:, inv])
+        return self._caller
+
+    @property
+    def fragments(self) -> Fragments:
+        return self._in_caller_order()[0]
+
+    @property
+    def splats(self) -> Splats:
+        return self._in_caller_order()[1]
+
+    @property
+    def attributes(self) -> torch.Tensor:
+        return self._in_caller_order()[2]
 
 
 def resolve_backend(backend: str, device: torch.device | None = None) -> str:
@@ -284,6 +316,14 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
     merge = settings.merge_threshold
     if merge is None:
         merge = settings.merge_fraction * max(bbox_diagonal(points.detach()), 1e-12)
+    order = None
+    if settings.spatial_sort and points.shape[0] >= SORT_MIN_POINTS:
+        order = spatial_order(points)
+        sigma_caller = sigma_t
+        points, normals = points[order], normals[order]
+        colors = None if colors is None else colors[order]
+        if sigma_t.ndim == 1 and sigma_t.numel() == order.numel():
+            sigma_t = sigma_t[order]
     needs_grad_inputs = torch.is_grad_enabled() and (points.requires_grad or normals.requires_grad)
     if backend == "cpp" and not needs_grad_inputs:
         # forward only: the fused C++ projection (same formulas as project_splats)
@@ -320,4 +360,6 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
             if vis_points.requires_grad:
                 images = _VisibilityGradient.apply(images, vis_points, splats.packed.detach().contiguous(),
                                                    attrs.detach().contiguous(), frags_t, cam_t, bg, opts)
-    return RenderOutput(images, mask, frags, splats, attrs, sigma_t)
+    if order is not None:
+        sigma_t = sigma_caller
+    return RenderOutput(images, mask, frags, splats, attrs, sigma_t, point_order=order)

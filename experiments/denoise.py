@@ -11,9 +11,11 @@ The noisy cloud (normals estimated when missing; rows with NaN/inf reported and 
 normalised to a unit bounding-box diagonal. Every cycle 12 views are sampled around it, the
 *input* is rendered with the denoiser's training render setting (the model file's metadata, or
 ``conf/render/pairs.yaml`` for the filters), the renders are mapped through the reference
-generator (``conf/reference``), and DSS optimises normals and points to match them (the paper's
-local schedule: T_n = 19 normal steps, T_p = 1 point step, up to 16 cycles, projection and
-repulsion). Writes into the run directory: ``config.yaml``, the denoised PLY (input units),
+generator (``conf/reference``), and DSS optimises normals to match them (the paper's local
+schedule, T_n = 19 normal steps per cycle, up to 16 cycles) while the projection term moves the
+points onto the planes of the corrected normals. The paper's T_p = 1 image-driven point step
+per cycle is ``optimizer.point_steps=1``: with learned references it made the result worse
+(measurements in ``conf/denoise.yaml``). Writes into the run directory: ``config.yaml``, the denoised PLY (input units),
 ``before_after.png`` (rows: noisy | denoised | clean when given), ``references.png`` (last cycle:
 input renders | references | final renders), ``loss.png`` + ``loss.json``, ``metrics.json``.
 """

@@ -1,11 +1,12 @@
 """Write a model card (markdown) for a trained denoiser from its training run directory.
 
-    python -m experiments.model_card RUN_DIR OUT.md [--onnx OUT.onnx]
+    python -m experiments.model_card RUN_DIR OUT.md [--onnx OUT.onnx] [--eval EVAL.json]
 
 Everything in the card comes from the run: ``config.yaml`` (model, data, trainer),
 ``metrics.json`` (best-checkpoint validation against the clean renders and the noisy
 baseline, training time, steps, throughput) and the ONNX file's metadata. With ``--onnx`` the
-run's ``denoiser.onnx`` is copied there too (atomically).
+run's ``denoiser.onnx`` is copied there too (atomically); with ``--eval`` the card adds the shipped
+model's raw and background-snapped metrics from ``experiments.evaluate_denoiser``.
 """
 
 from __future__ import annotations
@@ -20,7 +21,18 @@ from omegaconf import OmegaConf
 from dss.io_utils import atomic_path, atomic_write_text
 
 
-def card(run_dir: Path) -> str:
+def eval_section(ev: dict) -> list[str]:
+    """Markdown lines for an ``experiments.evaluate_denoiser`` result (raw and snapped output)."""
+    from experiments.evaluate_denoiser import markdown
+
+    return ["", f"## The shipped denoiser on the {ev['split']} split ({ev['pairs']} pairs, onnxruntime)",
+            "The runtime snaps pixels darker than half the renders' ambient term to the black background "
+            "(`pix2pix/postprocess.py`); SMAPE split into the clean render's surface and the halo the noise "
+            "spreads around it.", "", markdown(ev), "",
+            f"`{ev.get('command', 'python -m experiments.evaluate_denoiser')}`"]
+
+
+def card(run_dir: Path, evaluation: dict | None = None) -> str:
     cfg = OmegaConf.load(run_dir / "config.yaml")
     m = json.loads((run_dir / "metrics.json").read_text())
     val = m.get("best_val") or {}
@@ -32,6 +44,8 @@ def card(run_dir: Path) -> str:
         return fmt.format(v) if isinstance(v, (int, float)) else "n/a"
 
     red = val.get("val/smape_reduction")
+    shipped_red = (evaluation or {}).get("metrics", {}).get("snapped", {}).get("smape_reduction")
+    target_red = shipped_red if isinstance(shipped_red, float) else red
     l1 = val.get("val/l1")
     nl1 = val.get("val/noisy_l1")
     lines = [
@@ -59,11 +73,13 @@ def card(run_dir: Path) -> str:
         "",
         f"SMAPE reduction relative to the noisy input: {red * 100:.1f}%" if isinstance(red, float) else "",
         f"L1 reduction: {(1 - l1 / nl1) * 100:.1f}%" if isinstance(l1, float) and nl1 else "",
+        *(eval_section(evaluation) if evaluation else []),
         "",
         "## Limitations",
         "- A CPU-sized model trained for under an hour on ~4.6K pairs; the paper's model (ngf 64, 9 blocks, 256 px) "
         "trained for two days on a GPU. The issue's target (SMAPE -30% vs the noisy input) is "
-        + ("met." if isinstance(red, float) and red >= 0.3 else "NOT met by this model."),
+        + (f"met by the shipped (snapped) output ({target_red * 100:.1f}%)." if isinstance(target_red, float)
+           and target_red >= 0.3 else "NOT met by this model."),
         "- Trained on 128x128 renders of generated shapes with the point light of `conf/render/pairs.yaml`; "
         "the pipeline renders test views with that same setting (it is stored in the ONNX metadata).",
         "",
@@ -77,8 +93,11 @@ def main(argv=None) -> int:
     ap.add_argument("run_dir", type=Path)
     ap.add_argument("out", type=Path)
     ap.add_argument("--onnx", type=Path, default=None)
+    ap.add_argument("--eval", type=Path, default=None,
+                    help="JSON written by python -m experiments.evaluate_denoiser for this model")
     a = ap.parse_args(argv)
-    atomic_write_text(a.out, card(a.run_dir))
+    ev = json.loads(a.eval.read_text()) if a.eval else None
+    atomic_write_text(a.out, card(a.run_dir, ev))
     if a.onnx is not None:
         with atomic_path(a.onnx) as tmp:
             shutil.copyfile(a.run_dir / "denoiser.onnx", tmp)

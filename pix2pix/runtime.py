@@ -9,6 +9,9 @@ Errors are explicit: a missing file (FileNotFoundError), a file that is not ONNX
 model but not one of our denoisers (:class:`DenoiserFormatError`, a ValueError, naming the
 file), a wrong channel count or a size that is not a multiple of 4 (ValueError naming the
 shape; ``pad=True`` pads by reflection and crops back instead).
+
+Outputs are background-snapped (:mod:`pix2pix.postprocess`: pixels darker than half the training
+renders' ambient term become 0) unless ``snap_background=False``.
 """
 
 from __future__ import annotations
@@ -19,6 +22,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .postprocess import background_snap_threshold
+from .postprocess import snap_background as _snap
 
 __all__ = ["OnnxDenoiser", "DenoiserFormatError", "DENOISER_KIND"]
 
@@ -41,6 +47,8 @@ class OnnxDenoiser:
         inter_op_num_threads: threads across operators (1: sequential execution).
         max_batch: views per ``session.run`` call (bounds peak memory).
         providers: onnxruntime execution providers (default CPU).
+        snap_background: zero output pixels darker than half the ambient term of the training
+            renders (:mod:`pix2pix.postprocess`); the raw network output with False.
 
     Attributes:
         metadata: the file's ``dss.*`` metadata, JSON values parsed.
@@ -55,6 +63,7 @@ class OnnxDenoiser:
         inter_op_num_threads: int | None = 1,
         max_batch: int = 8,
         providers: list[str] | None = None,
+        snap_background: bool = True,
     ):
         import onnxruntime as ort
 
@@ -98,6 +107,9 @@ class OnnxDenoiser:
         self.input_name = inputs[0].name
         self.channels = int(self.metadata.get("dss.channels", 3))
         self.size_multiple = int(self.metadata.get("dss.size_multiple", 4))
+        #: output pixels below this intensity are set to 0 (None: no snap)
+        self.background_threshold = (background_snap_threshold(self.render_settings)
+                                     if snap_background else None)
 
     # ---- metadata views ------------------------------------------------------------------------
     @property
@@ -118,7 +130,8 @@ class OnnxDenoiser:
 
     def __repr__(self) -> str:
         return (f"OnnxDenoiser({str(self.path)!r}, noise_level={self.noise_level}, "
-                f"render_image_size={self.render_image_size})")
+                f"render_image_size={self.render_image_size}, "
+                f"background_threshold={self.background_threshold})")
 
     # ---- inference -----------------------------------------------------------------------------
     def _check(self, x: np.ndarray, pad: bool) -> None:
@@ -158,7 +171,8 @@ class OnnxDenoiser:
             for i in range(0, x.shape[0], self.max_batch)
         ]
         y = np.concatenate(outs, axis=0) if outs else np.zeros_like(x)
-        return np.ascontiguousarray(y[:, :, :h, :w], dtype=np.float32)
+        y = _snap(y[:, :, :h, :w], self.background_threshold, channel_dim=1)
+        return np.ascontiguousarray(y, dtype=np.float32)
 
     def denoise_views(self, views: Any, pad: bool = False) -> np.ndarray:
         """Denoise (V, H, W, C) images (the ``dss`` layout) -> (V, H, W, C) float32."""

@@ -216,7 +216,7 @@ def test_denoise_app_l0_end_to_end(case, tmp_path):
     for pr in ("paper", "score"):
         assert m["metrics_input"][pr]["protocol"] == pr and m["metrics_output"][pr]["p2m"] is not None
     assert m["summary"]["output"]["paper"]["chamfer"] < m["summary"]["input"]["paper"]["chamfer"]
-    assert m["steps"] == 40 and len(json.loads((out / "loss.json").read_text())["loss"]) == 40
+    assert m["steps"] == 2 * 19 and len(json.loads((out / "loss.json").read_text())["loss"]) == 2 * 19  # 2 cycles x (T_n 19 + T_p 0)
     assert m["render"]["image_size"] == [64, 64] and m["reference"]["name"] == "l0"
     assert m["input"]["normals"].startswith("estimated") and m["input"]["nan_rows_dropped"] == 0
     assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0

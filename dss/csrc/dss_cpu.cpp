@@ -420,8 +420,11 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 // Backward of Eq. sumI for the smooth terms (Eqs. gradN, gradP without the visibility term):
 // I = sum_f rho_f w_f / sum_f rho_f over the visible cached fragments, rho_f = norm exp(-q/2),
 // q = a dx^2 + b2 dx dy + c dy^2 with d = pixel centre - (u, v). Returns dL/dpacked (V,N,10)
-// (u, v, conic a, b2, c, norm; zero for the other fields) and dL/dattrs (V,N,C). Parallel over
-// points: every point owns its accumulators, so there is no race and the sum order is fixed.
+// (u, v, conic a, b2, c, norm; zero for the other fields) and dL/dattrs (V,N,C).
+// Parallel over views, each view scanning its own fragments once in row-major pixel order: a view
+// owns its (v, k) accumulators (no race, a fixed sum order per point), and the work is the
+// number of cached fragments, not (splat box area x K) per point as a point-parallel loop over
+// each splat's box would be (2-4x slower at 20K points, 256 px).
 std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
                                           torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
                                           torch::Tensor grad, double merge_d) {
@@ -447,54 +450,58 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
   const float* GR = grad.data_ptr<float>();
   float* GP = gpk.data_ptr<float>();
   float* GA = gat.data_ptr<float>();
-  dynamic_for(N, 16, [&](int64_t k) {
-    for (int64_t v = 0; v < V; ++v) {
-      const float* s = P + (v * N + k) * kFields;
-      if (!(s[9] > 0.f)) continue;
-      const Box b = splat_box(s, (int)H, (int)W);
-      const float* wk = A + (v * N + k) * C;
-      double du = 0, dv = 0, da = 0, db = 0, dc = 0, dn = 0;
-      double ga[16] = {0};
-      for (int i = b.i0; i <= b.i1; ++i) {
-        const float py = (float)i + 0.5f;
-        for (int j = b.j0; j <= b.j1; ++j) {
-          const int64_t g = (v * H + i) * W + j;
-          const int32_t* pi = I + g * K;
-          const float* pd = D + g * K;
-          const float* pr = Rh + g * K;
-          if (pi[0] < 0) continue;
-          const float lim = pd[0] + merge;
-          int ek = -1;
-          float den = 0.f;
-          for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
-            den += pr[e];
-            if (pi[e] == (int32_t)k) ek = e;
-          }
-          if (ek < 0 || !(den > 0.f)) continue;
-          const float* gp = GR + g * C;
-          const float* ip = IMG + g * C;
-          const float rf = pr[ek];
+  const int64_t S = 6 + C;  // per point: du, dv, da, db, dc, dnorm, then dL/dattr per channel
+  dynamic_for(V, 1, [&](int64_t v) {
+    std::vector<double> acc((size_t)(N * S), 0.0);  // double sums, as the per-point loop had
+    for (int64_t i = 0; i < H; ++i) {
+      const float py = (float)i + 0.5f;
+      for (int64_t j = 0; j < W; ++j) {
+        const int64_t g = (v * H + i) * W + j;
+        const int32_t* pi = I + g * K;
+        const float* pd = D + g * K;
+        const float* pr = Rh + g * K;
+        if (pi[0] < 0) continue;
+        const float lim = pd[0] + merge;
+        int nvis = 0;
+        float den = 0.f;
+        for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+          den += pr[e];
+          ++nvis;
+        }
+        if (!(den > 0.f)) continue;
+        const float* gp = GR + g * C;
+        const float* ip = IMG + g * C;
+        for (int e = 0; e < nvis; ++e) {
+          const int64_t k = pi[e];
+          const float* s = P + (v * N + k) * kFields;
+          if (!(s[9] > 0.f)) continue;
+          const float* wk = A + (v * N + k) * C;
+          double* a = acc.data() + k * S;
+          const float rf = pr[e];
           double drho = 0;
           for (int64_t c = 0; c < C; ++c) {
             drho += (double)gp[c] * (wk[c] - ip[c]) / den;
-            ga[c] += (double)gp[c] * rf / den;
+            a[6 + c] += (double)gp[c] * rf / den;
           }
           const float dx = ((float)j + 0.5f) - s[0], dy = py - s[1];
           const float q = quad(s, dx, dy);
-          const double e = std::exp(-0.5 * (double)q);
-          dn += drho * e;
-          const double dq = -0.5 * drho * (double)s[5] * e;
-          da += dq * dx * dx;
-          db += dq * dx * dy;
-          dc += dq * dy * dy;
-          du += -dq * (2.0 * s[2] * dx + s[3] * dy);
-          dv += -dq * (s[3] * dx + 2.0 * s[4] * dy);
+          const double ex = std::exp(-0.5 * (double)q);
+          a[5] += drho * ex;
+          const double dq = -0.5 * drho * (double)s[5] * ex;
+          a[2] += dq * dx * dx;
+          a[3] += dq * dx * dy;
+          a[4] += dq * dy * dy;
+          a[0] += -dq * (2.0 * s[2] * dx + s[3] * dy);
+          a[1] += -dq * (s[3] * dx + 2.0 * s[4] * dy);
         }
       }
+    }
+    for (int64_t k = 0; k < N; ++k) {
+      const double* a = acc.data() + k * S;
       float* o = GP + (v * N + k) * kFields;
-      o[0] = (float)du; o[1] = (float)dv; o[2] = (float)da; o[3] = (float)db; o[4] = (float)dc; o[5] = (float)dn;
+      for (int f = 0; f < 6; ++f) o[f] = (float)a[f];
       float* oa = GA + (v * N + k) * C;
-      for (int64_t c = 0; c < C; ++c) oa[c] = (float)ga[c];
+      for (int64_t c = 0; c < C; ++c) oa[c] = (float)a[6 + c];
     }
   });
   return {gpk, gat};

@@ -1,0 +1,719 @@
+"""``dss-denoise-table``: the paper's point cloud denoising comparison, in one resumable command.
+
+    dss-denoise-table                                 # 20K points, 1% noise, every method
+    dss-denoise-table noise=0.003                     # the 0.3% table (its own out_dir)
+    dss-denoise-table methods=[cgal_jet,dss_l0] 'dss_overrides=["optimizer.cycles=4"]'
+
+Cases (``cases`` + ``generated``): the Kangaroo mesh (``../shared/data``, skipped with the reason
+when absent) and the first ``generated.count`` shapes of the ``cpu`` dss-prep preset's *test*
+split in the plan's order, made exactly as dss-prep and ``experiments/make_example.py`` make them
+(the first is the shipped example: at 20K points and 1% noise its files are the shipped ones).
+Each case: ``points`` Poisson-disk samples of the mesh (the clean cloud, ground truth with the
+mesh) plus Gaussian noise of std ``noise`` x bbox diagonal (the noisy input), seeded, cached in
+``out_dir/cases/<case>/{noisy,clean,mesh}.ply`` (+ ``case.json``).
+
+Methods: the input itself (no method) and the Chamfer floor (a second clean sampling), every
+baseline of :mod:`experiments.baselines` (``preset_params(method, noise)``, run by
+:func:`~experiments.baselines.runner.run_method` in a subprocess with a time limit), and DSS
+(``dss_pix2pix``: dss-denoise with the shipped model for ``noise``; ``dss_l0``: with the L0
+image filter), each a ``python -m experiments.denoise`` subprocess with a time limit. A crash,
+hang or NaN output is a failure record; the table carries on.
+
+Metrics: :func:`dss.metrics.evaluate`, ``paper`` protocol (clean cloud's bbox diagonal = 1):
+CD x1e4, HD x1e3, P2M x1e4 (two-sided, PyTorch3D's definition), plus the method's wall time
+(baselines: the method call in its worker; DSS: the optimisation, i.e. rendering, reference
+generation and updates, without start-up, file input and normal estimation).
+
+Outputs in ``out_dir`` (atomic writes): ``records/<case>/<method>.json`` (one per run; an
+existing one is reused unless ``overwrite=true``, so an interrupted run resumes), ``table.json``
+(every record + per-method summary), ``table.md`` (rows = methods, columns = CD/HD/P2M per case,
+means over cases, mean time; best per column in bold), ``accuracy_vs_time.png`` (mean CD and mean
+P2M against mean time, Pareto front marked), ``README.md`` (the command), ``outputs/`` (each
+method's cloud) and ``runs/`` (DSS run directories with their logs).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from experiments.baselines.methods import METHODS, preset_params
+from experiments.baselines.runner import run_method
+
+log = logging.getLogger(__name__)
+
+__all__ = ["run", "main", "REPO_ROOT", "resolve_repo_path", "test_split_shapes", "prepare_case",
+           "render_markdown", "summarize"]
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+PROTOCOL = "paper"
+METRIC_KEYS = ("chamfer", "hausdorff", "p2m")
+METRIC_NAMES = {"chamfer": "CD", "hausdorff": "HD", "p2m": "P2M"}
+#: statuses whose record still carries metrics (the output exists and is finite)
+SCORED = ("ok", "worse_than_input", "reference")
+#: fixed arguments of every DSS run: its own metrics and floor are not needed (scored here)
+DSS_BASE = ["progress=false", "metrics.protocols=[paper]", "metrics.floor=false", "overwrite=true"]
+
+
+def resolve_repo_path(p: str | os.PathLike) -> Path:
+    """An absolute path as is; a relative one against the repository root."""
+    p = Path(os.path.expanduser(str(p)))
+    return p if p.is_absolute() else (REPO_ROOT / p).resolve()
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(name))
+
+
+def _versions() -> dict:
+    import platform
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for pkg in ("dss-splatting", "numpy", "torch", "open3d", "onnxruntime", "cgal", "pymeshlab"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+# ------------------------------------------------------------------------------ cases
+def _prep_config(preset: str):
+    """The dss-prep :class:`~data_prep.shards.PrepConfig` of ``conf/prep_preset/<preset>.yaml``."""
+    from data_prep.shards import PrepConfig
+
+    conf = REPO_ROOT / "conf"
+    path = conf / "prep_preset" / f"{preset}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise FileNotFoundError(f"generated.preset: {path} not found (known presets: {known})")
+    base = OmegaConf.load(conf / "prep.yaml")
+    for k in ("defaults", "hydra"):
+        base.pop(k, None)
+    return PrepConfig.from_config(OmegaConf.merge(base, OmegaConf.load(path)))
+
+
+def test_split_shapes(count: int, preset: str = "cpu") -> list[dict]:
+    """The first ``count`` shapes of ``preset``'s test split in the dss-prep plan's order
+    (families interleave there, so up to 10 shapes are of different families; the first of the
+    ``cpu`` preset is the shipped example's ``superquadric-0026``): case dicts."""
+    if count <= 0:
+        return []
+    from data_prep.render_spec import load_render_spec
+    from data_prep.shards import build_plan
+
+    pc = _prep_config(preset)
+    test = [s for s in build_plan(pc, load_render_spec()).shapes if s.split == "test"]
+    if count > len(test):
+        raise ValueError(f"generated.count={count}: the {preset} preset's test split has {len(test)} shapes")
+    return [{"name": s.shape_id, "family": s.family, "index": s.index, "data_seed": pc.seed,
+             "resolution": pc.resolution, "noise_levels": list(pc.noise_levels)} for s in test[:count]]
+
+
+def case_list(cfg: DictConfig) -> list[dict]:
+    """The configured cases (``cases`` then the generated ones), validated, as plain dicts."""
+    cases = [dict(c) for c in _plain(cfg.get("cases"))]
+    gen = cfg.get("generated") or {}
+    cases += test_split_shapes(int(gen.get("count", 0) or 0), str(gen.get("preset", "cpu")))
+    seen = set()
+    for c in cases:
+        if "name" not in c or not (("mesh" in c) ^ ("family" in c)):
+            raise ValueError(f"cases: each entry needs a name and either mesh or family, got {c}")
+        if c["name"] in seen:
+            raise ValueError(f"cases: duplicate case name {c['name']!r}")
+        seen.add(c["name"])
+    return cases
+
+
+def _level_index(noise: float, levels) -> int:
+    """dss-prep's noise-seed index of ``noise`` (its position among the preset's levels, so the
+    shipped example is reproduced); an unlisted level gets an index of its own."""
+    for i, lv in enumerate(levels):
+        if abs(float(lv) - noise) <= 1e-9 * max(1.0, noise):
+            return i
+    return 1000 + int(round(noise * 1e6))
+
+
+def _make_case_arrays(case: dict, points: int, noise: float, seed: int):
+    """(mesh, clean Cloud (points, mesh normals), noisy (N, 3) float32, provenance dict)."""
+    from data_prep.sampling import measured_noise_std, noisy_copy, poisson_disk
+    from data_prep.shapes import make_shape
+    from data_prep.shapes.meshing import Mesh
+    from data_prep.shards import noise_seed, shape_seed
+
+    levels = case.get("noise_levels", [0.003, 0.01])
+    if "family" in case:
+        s = shape_seed(int(case.get("data_seed", 0)), case["family"], int(case.get("index", 0)))
+        mesh = make_shape(case["family"], s, int(case.get("resolution", 96)))
+        src = {"family": case["family"], "index": int(case.get("index", 0)), "shape_seed": s,
+               "resolution": int(case.get("resolution", 96))}
+    else:
+        from dss.metrics import load_mesh
+
+        v, f = load_mesh(resolve_repo_path(case["mesh"]))
+        mesh, s = Mesh(np.asarray(v, np.float64), np.asarray(f, np.int64)), int(seed)
+        src = {"mesh": str(resolve_repo_path(case["mesh"])), "seed": s}
+    clean = poisson_disk(mesh, points, s)
+    ns = noise_seed(s, _level_index(noise, levels))
+    noisy = noisy_copy(clean.points, noise, ns)
+    src.update(noise_seed=ns, vertices=len(mesh.vertices), faces=len(mesh.faces),
+               measured_noise=round(measured_noise_std(clean.points, noisy), 6))
+    return mesh, clean, noisy, src
+
+
+def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, overwrite: bool = False) -> dict:
+    """Make (or reuse) ``root/{noisy,clean,mesh}.ply`` and ``root/case.json``; returns case.json.
+
+    A missing mesh file returns ``{"status": "skipped", "reason": ...}`` (nothing written). An
+    existing case made with other settings is refused unless ``overwrite`` (then it is remade
+    and its records are stale: the caller deletes them; ``case.json["remade"]`` says so).
+    """
+    import torch
+
+    from dss.io_utils import atomic_write_json
+    from experiments.make_example import write_ply
+
+    key = {"case": {k: v for k, v in case.items() if k != "name"}, "points": int(points), "noise": float(noise),
+           "seed": int(seed)}
+    if "mesh" in case:
+        path = resolve_repo_path(case["mesh"])
+        if not path.is_file():
+            return {"name": case["name"], "status": "skipped", "key": key,
+                    "reason": f"mesh file {path} not found (configured as {case['mesh']!r})"}
+    meta_path = root / "case.json"
+    files = [root / f for f in ("noisy.ply", "clean.ply", "mesh.ply")]
+    if meta_path.is_file() and all(f.is_file() for f in files):
+        meta = json.loads(meta_path.read_text())
+        if meta.get("key") == key:
+            return meta
+        if not overwrite:
+            raise ValueError(f"{root}: case {case['name']!r} was made with other settings ({meta.get('key')} vs "
+                             f"{key}); use another out_dir or overwrite=true")
+    t0 = time.perf_counter()
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)  # open3d's sample elimination and the noise are then reproducible
+    try:
+        mesh, clean, noisy, src = _make_case_arrays(case, int(points), float(noise), int(seed))
+    finally:
+        torch.set_num_threads(prev)
+    root.mkdir(parents=True, exist_ok=True)
+    write_ply(root / "mesh.ply", mesh.vertices, faces=mesh.faces)
+    write_ply(root / "clean.ply", clean.points, normals=clean.normals)
+    write_ply(root / "noisy.ply", noisy)
+    meta = {"name": case["name"], "status": "ready", "key": key, "source": src, "points": int(points),
+            "noise": float(noise), "seconds": round(time.perf_counter() - t0, 2),
+            "remade": meta_path.is_file()}
+    atomic_write_json(meta_path, meta)
+    return meta
+
+
+# ------------------------------------------------------------------------------ scoring
+def _score(pred: np.ndarray, clean: np.ndarray, mesh) -> dict:
+    """Paper-protocol metrics of ``pred`` (N, 3) against the case's clean cloud and mesh."""
+    from dss.metrics import evaluate
+
+    d = evaluate(pred, clean, mesh, PROTOCOL).to_dict()
+    d.pop("normalization", None)
+    return d
+
+
+def _judge(rec: dict, pred: np.ndarray | None, gt: dict) -> dict:
+    """Fill ``rec["metrics"]`` from ``pred`` and settle ``nan`` / ``worse_than_input`` / ``ok``."""
+    if pred is None:
+        return rec
+    if pred.ndim != 2 or pred.shape[1:] != (3,) or len(pred) == 0:
+        rec.update(status="invalid_output", failed=True, message=f"output has shape {pred.shape}, expected (M>0, 3)")
+        return rec
+    if not np.isfinite(pred).all():
+        rec.update(status="nan", failed=True,
+                   message=f"{int((~np.isfinite(pred)).any(1).sum())} of {len(pred)} output points are NaN/Inf")
+        return rec
+    rec["metrics"] = _score(pred, gt["clean"], gt["mesh"])
+    cd, cd_in = rec["metrics"]["chamfer"], gt["input_chamfer"]
+    if cd > cd_in:
+        rec.update(status="worse_than_input", message=f"Chamfer x1e4 {cd:.4g} > input {cd_in:.4g}")
+    elif rec["status"] in ("ok", "worse_than_input"):
+        rec.update(status="ok", message="")
+    rec["failed"] = rec["status"] != "ok"
+    return rec
+
+
+def _save_output(out: Path | None, pts: np.ndarray | None) -> str | None:
+    if out is None or pts is None or not np.isfinite(pts).all():
+        return None
+    from experiments.make_example import write_ply
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, pts)
+    return str(out)
+
+
+# ------------------------------------------------------------------------------ methods
+def method_list(cfg: DictConfig) -> list[str]:
+    """The method labels to run, validated (unknown names are refused before any work)."""
+    dss, custom = dict(cfg.dss_methods or {}), dict(cfg.custom_methods or {})
+    names = cfg.methods
+    if isinstance(names, str):
+        if names != "all":
+            raise ValueError(f"methods must be 'all' or a list, got {names!r}")
+        return [*METHODS, *dss, *custom]
+    names = [str(m) for m in names]
+    known = [*METHODS, *dss, *custom]
+    bad = [m for m in names if m not in known]
+    if bad:
+        raise ValueError(f"methods: unknown {bad}; known: {known} (custom ones go in custom_methods)")
+    if len(set(names)) != len(names):
+        raise ValueError(f"methods: duplicates in {names}")
+    return names
+
+
+def _run_baseline(spec: str, gt: dict, params: dict, limit: float,
+                  threads: int | None, out_ply: Path | None) -> dict:
+    """One baseline on one case through the subprocess runner; a JSON-ready record."""
+    noisy = gt["noisy"]
+    res = run_method(spec, noisy, params=params, time_limit=limit, clean=gt["clean"], protocol=PROTOCOL,
+                     threads=threads)
+    r = res.record
+    rec = {"kind": "baseline", "spec": spec, "params": r.params, "resolved": r.resolved, "status": r.status,
+           "failed": r.failed, "message": r.message, "time_s": r.wall_s, "total_s": r.total_s,
+           "time_limit_s": limit, "n_out": r.n_out, "versions": r.versions, "signal": r.signal,
+           "stderr_tail": r.stderr_tail[-1500:] if r.failed and r.status != "worse_than_input" else ""}
+    pts = res.points
+    rec = _judge(rec, pts, gt)
+    rec["output"] = _save_output(out_ply, pts) if rec.get("metrics") else None
+    return rec
+
+
+def _hydra_value(s: str) -> str:
+    """A path as a Hydra override value (quoted unless plainly safe)."""
+    return s if re.fullmatch(r"[A-Za-z0-9_./-]+", s) else "'" + s.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _tail(path: Path, n: int = 1500) -> str:
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return ""
+    return data[-n:].decode("utf-8", "replace")
+
+
+def _run_dss(overrides: list[str], case_dir: Path, gt: dict, noise: float, limit: float,
+             threads: int | None, run_dir: Path, out_ply: Path | None) -> dict:
+    """One dss-denoise subprocess on one case (its own process group, killed at ``limit`` s);
+    its run directory (config.yaml, metrics.json, dss.log, figures) is ``run_dir``."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    args = [f"input={_hydra_value(str(case_dir / 'noisy.ply'))}", f"clean={_hydra_value(str(case_dir / 'clean.ply'))}",
+            f"mesh={_hydra_value(str(case_dir / 'mesh.ply'))}", f"hydra.run.dir={_hydra_value(str(run_dir))}",
+            f"noise={noise}", *DSS_BASE, *([f"threads={int(threads)}"] if threads else []), *overrides]
+    env = dict(os.environ)
+    if threads:
+        for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            env[k] = str(int(threads))
+    env["PYTHONPATH"] = str(REPO_ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    rec = {"kind": "dss", "spec": "experiments.denoise", "params": {"overrides": list(overrides)},
+           "command": shlex.join(["python", "-m", "experiments.denoise", *args]), "status": "crash",
+           "failed": True, "message": "", "time_s": None, "total_s": None, "time_limit_s": limit,
+           "run_dir": str(run_dir)}
+    logf = run_dir / "dss.log"
+    t0 = time.perf_counter()
+    with open(logf, "wb") as lf:
+        proc = subprocess.Popen([sys.executable, "-m", "experiments.denoise", *args], stdout=lf,
+                                stderr=subprocess.STDOUT, env=env, cwd=str(REPO_ROOT), start_new_session=True)
+        try:
+            code = proc.wait(timeout=limit)
+        except subprocess.TimeoutExpired:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            proc.wait()
+            rec.update(status="timeout", message=f"killed after the time limit of {limit:g} s",
+                       total_s=time.perf_counter() - t0, stderr_tail=_tail(logf))
+            return rec
+    rec["total_s"], rec["exit_code"] = time.perf_counter() - t0, code
+    mpath, ply = run_dir / "metrics.json", run_dir / "denoised.ply"
+    if code != 0 or not mpath.is_file() or not ply.is_file():
+        sig = f"signal {signal.Signals(-code).name}" if code < 0 else f"exit code {code}"
+        rec.update(message=f"dss-denoise failed ({sig}); see {logf}", stderr_tail=_tail(logf))
+        return rec
+    m = json.loads(mpath.read_text())
+    rec["time_s"] = m.get("time_s", {}).get("optimization")
+    rec["reference"] = {k: m.get("reference", {}).get(k) for k in ("name", "model", "noise_level", "selection")}
+    rec["versions"] = _versions()
+    try:
+        pts = _load_raw_points(ply)  # NaN rows kept: a NaN output must be seen, not dropped
+    except Exception as e:  # noqa: BLE001 - an unreadable output is this method's failure
+        rec.update(status="invalid_output", message=f"{ply}: unreadable ({e})")
+        return rec
+    rec["status"], rec["n_out"] = "ok", int(len(pts))
+    rec = _judge(rec, pts, gt)
+    rec["output"] = _save_output(out_ply, pts) if rec.get("metrics") else None
+    return rec
+
+
+def _load_raw_points(path: Path) -> np.ndarray:
+    """(N, 3) float64 vertex positions, NaN/inf rows kept."""
+    import open3d as o3d
+
+    pc = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    return np.asarray(pc.points, dtype=np.float64)
+
+
+def _plain(node) -> list | dict:
+    """A config node (or None / a plain container) as a plain, resolved container."""
+    if node is None:
+        return []
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+
+
+def _request(label: str, cfg: DictConfig, noise: float) -> dict:
+    """What determines a (case, method) record besides the case: a stored record is reused only
+    when its request is the same."""
+    dss = dict(cfg.dss_methods or {})
+    if label in dss:
+        ovr = [*_plain(dss[label]), *_plain(cfg.get("dss_overrides"))]
+        # threads=null gives "...=None", which Hydra would read as a string
+        return {"kind": "dss", "overrides": [re.sub(r"=None$", "=null", str(o)) for o in ovr]}
+    spec = str((cfg.custom_methods or {}).get(label, label))
+    extra = (_plain(cfg.get("params")) or {}).get(label) or {}
+    return {"kind": "baseline", "spec": spec, "params": {**preset_params(spec, noise), **(extra or {})}}
+
+
+def _check_params(cfg: DictConfig, methods: list[str], noise: float) -> None:
+    """Unknown parameter names of registered baselines are refused before any work."""
+    for label in methods:
+        req = _request(label, cfg, noise)
+        if req["kind"] == "baseline" and req["spec"] in METHODS:
+            bad = sorted(set(req["params"]) - set(METHODS[req["spec"]].defaults))
+            if bad:
+                raise ValueError(f"params.{label}: unknown parameter(s) {bad}; accepted: "
+                                 f"{sorted(METHODS[req['spec']].defaults)}")
+
+
+def _reusable(rec: dict | None, req: dict, limit: float) -> bool:
+    if not rec or rec.get("request") != req:
+        return False
+    # a run killed by a shorter limit than the one asked now is retried
+    return not (rec.get("status") == "timeout" and limit > float(rec.get("time_limit_s") or 0))
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _reference_record(kind: str, case: str, pts: np.ndarray, gt: dict, extra: dict | None = None) -> dict:
+    """The ``input`` (noisy cloud) or ``floor`` (second clean sampling) row of a case."""
+    return {"case": case, "method": kind, "kind": kind, "status": "reference", "failed": False, "message": "",
+            "params": extra or {}, "metrics": _score(pts, gt["clean"], gt["mesh"]), "time_s": None, "n_out": len(pts)}
+
+
+# ------------------------------------------------------------------------------ the table
+def _mean(vals: list[float]) -> float | None:
+    vals = [v for v in vals if v is not None and math.isfinite(v)]
+    return float(np.mean(vals)) if vals else None
+
+
+def summarize(records: list[dict], methods: list[str], cases: list[str]) -> list[dict]:
+    """Per-method rows: ``{"method", "kind", "cases": {case: {"status", "message", chamfer,
+    hausdorff, p2m}}, "mean": {metric: mean over the scored cases}, "n_scored", "complete",
+    "time_s" (mean over the scored cases), "pareto": {metric: bool}}``; ``cases``: the
+    non-skipped case names (the table's columns)."""
+    from experiments.baselines.aggregate import pareto_front
+
+    rows = []
+    for label in ["input", "floor", *methods]:
+        recs = {r["case"]: r for r in records if r["method"] == label and r["case"] in cases}
+        if not recs:
+            continue
+        cells = {}
+        for c in cases:
+            r = recs.get(c, {"status": "missing", "message": "no record"})
+            m = r.get("metrics") or {}
+            cells[c] = {"status": r["status"], "message": r.get("message", ""), "time_s": r.get("time_s"),
+                        **{k: m.get(k) for k in METRIC_KEYS}}
+        scored = [c for c in cases if cells[c]["chamfer"] is not None]
+        rows.append({"method": label, "kind": next(iter(recs.values())).get("kind"), "cases": cells,
+                     "mean": {k: _mean([cells[c][k] for c in scored]) for k in METRIC_KEYS},
+                     "n_scored": len(scored), "complete": bool(cases) and len(scored) == len(cases),
+                     "time_s": _mean([cells[c]["time_s"] for c in scored]),
+                     "statuses": sorted({cells[c]["status"] for c in cases})})
+    ranked = [r for r in rows if r["kind"] not in ("input", "floor") and r["complete"] and r["time_s"] is not None]
+    for r in rows:
+        r["pareto"] = {}
+    for k in ("chamfer", "p2m"):
+        front = pareto_front([r["time_s"] for r in ranked],
+                             [np.nan if r["mean"][k] is None else r["mean"][k] for r in ranked])
+        for r, f in zip(ranked, front):
+            r["pareto"][k] = bool(f)
+    return rows
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None or not math.isfinite(v) else f"{v:.4g}"
+
+
+def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: list[str]) -> str:
+    """The paper-style table: rows = methods, columns = CD/HD/P2M per case, means, time; the best
+    method value per column in bold (input and floor rows excluded; means only of complete rows);
+    a failure shows as its status; † marks an output worse than the noisy input (Chamfer)."""
+    cases = [c["name"] for c in case_info if c["status"] != "skipped"]
+    cols = [(c, k) for c in cases for k in METRIC_KEYS] + [("mean", k) for k in METRIC_KEYS] + [("time", None)]
+
+    def value(r, c, k):
+        if c == "mean":
+            return r["mean"][k]
+        if c == "time":
+            return r["time_s"]
+        return r["cases"][c][k]
+
+    best = {}
+    for c, k in cols:
+        vals = [value(r, c, k) for r in rows if r["kind"] not in ("input", "floor")
+                and (c not in ("mean", "time") or r["complete"])]
+        vals = [v for v in vals if v is not None and math.isfinite(v)]
+        best[(c, k)] = min(vals) if vals else None
+
+    head = ["method"] + [f"{c} {METRIC_NAMES[k]}" if k else "time (s)" for c, k in cols]
+    lines = [f"# {title}", "", *[f"- {n}" for n in notes], "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    labels = {"input": "input (noisy)", "floor": "floor (2nd clean sampling)"}
+    for r in rows:
+        out = [labels.get(r["method"], r["method"])]
+        for c, k in cols:
+            v = value(r, c, k)
+            if c not in ("mean", "time") and v is None:
+                out.append(r["cases"][c]["status"])
+                continue
+            s = _fmt(v)
+            if c == "mean" and v is not None and not r["complete"]:
+                s += f" ({r['n_scored']}/{len(cases)})"
+            elif (v is not None and best[(c, k)] is not None and v == best[(c, k)] and r["kind"] not in ("input", "floor")
+                  and (c not in ("mean", "time") or r["complete"])):
+                s = f"**{s}**"
+            if c not in ("mean", "time") and k == "chamfer" and r["cases"][c]["status"] == "worse_than_input":
+                s += " †"
+            out.append(s)
+        lines.append("| " + " | ".join(out) + " |")
+    lines += ["", "† worse than the noisy input (Chamfer). Means over cases: `(k/n)` when only k of the n "
+              "cases have a result (not ranked). time: mean method wall time over the scored cases.", "",
+              "## Cases", "", "| case | source | points | noise | measured noise | status |", "|---|---|---|---|---|---|"]
+    for c in case_info:
+        src = c.get("source") or c.get("key", {}).get("case", {})
+        src_s = src.get("mesh") or f"{src.get('family')} #{src.get('index')} (shape seed {src.get('shape_seed')})"
+        st = "skipped: " + c["reason"] if c["status"] == "skipped" else "ok"
+        lines.append(f"| {c['name']} | {src_s} | {c['key']['points']} | {c['key']['noise']:g} | "
+                     f"{_fmt((c.get('source') or {}).get('measured_noise'))} | {st} |")
+    fails = [(c, r["method"], r["cases"][c]) for r in rows for c in cases
+             if r["cases"][c]["status"] not in SCORED]
+    if fails:
+        lines += ["", "## Failures", "", "| case | method | status | message |", "|---|---|---|---|"]
+        lines += [f"| {c} | {m} | {cell['status']} | {str(cell['message']).replace('|', '/')[:200]} |"
+                  for c, m, cell in fails]
+    return "\n".join(lines) + "\n"
+
+
+def plot_accuracy_vs_time(rows: list[dict], path: Path, title: str) -> Path | None:
+    """Mean CD and mean P2M (x1e4, paper) against mean wall time per method (complete rows), the
+    Pareto front (lower time and error) marked, the input and the floor as horizontal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dss.io_utils import atomic_savefig
+
+    pts = [r for r in rows if r["kind"] not in ("input", "floor") and r["complete"] and r["time_s"]]
+    ref = {r["kind"]: r for r in rows if r["kind"] in ("input", "floor")}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, k in zip(axes, ("chamfer", "p2m")):
+        good = [r for r in pts if r["mean"][k] is not None]
+        for r in good:
+            on = r["pareto"].get(k, False)
+            ax.scatter(r["time_s"], r["mean"][k], s=36, zorder=3, color="C3" if r["kind"] == "dss" else "C0")
+            if on:
+                ax.scatter(r["time_s"], r["mean"][k], s=150, facecolors="none", edgecolors="k", lw=1.4, zorder=4)
+            ax.annotate(r["method"], (r["time_s"], r["mean"][k]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        front = sorted((r["time_s"], r["mean"][k]) for r in good if r["pareto"].get(k))
+        if front:
+            ax.step(*zip(*front), where="post", color="k", ls="--", lw=1, zorder=2, label="Pareto front")
+        for kind, style in (("input", ":"), ("floor", "-.")):
+            v = ref.get(kind, {}).get("mean", {}).get(k)
+            if v is not None:
+                ax.axhline(v, color="0.5", ls=style, lw=1, label=f"{kind} ({v:.3g})")
+        times = [r["time_s"] for r in good]
+        if times and min(times) > 0 and max(times) / min(times) > 20:
+            ax.set_xscale("log")
+        ax.set_xlabel("mean wall time per case (s)")
+        ax.set_ylabel(f"mean {METRIC_NAMES[k]} x1e4 ({PROTOCOL} protocol)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(title + "  (red: DSS; circled: Pareto front; failed methods not shown)", fontsize=9)
+    fig.tight_layout()
+    atomic_savefig(fig, path)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------ the app
+def _load_gt(case_dir: Path) -> dict:
+    from dss.metrics import load_mesh, load_points
+
+    return {"noisy": load_points(case_dir / "noisy.ply"), "clean": load_points(case_dir / "clean.ply"),
+            "mesh": load_mesh(case_dir / "mesh.ply")}
+
+
+def _reference_rows(name: str, gt: dict, rdir: Path, floor: bool, seed: int, overwrite: bool) -> list:
+    from dss.io_utils import atomic_write_json
+    from dss.metrics import sample_poisson_disk
+
+    out = []
+    for kind in ("input", "floor") if floor else ("input",):
+        path = rdir / f"{kind}.json"
+        rec = None if overwrite else _read_json(path)
+        if rec is None:
+            if kind == "input":
+                rec = _reference_record("input", name, gt["noisy"], gt)
+            else:  # Poisson-disk samples of the mesh with another seed, scored against the clean cloud
+                rec = _reference_record("floor", name, sample_poisson_disk(gt["mesh"], len(gt["clean"]), seed + 1),
+                                        gt, {"seed": seed + 1})
+            atomic_write_json(path, rec)
+        out.append(rec)
+    return out
+
+
+def run(cfg: DictConfig, command: str | None = None) -> dict:
+    """Build the table (see the module docstring); returns ``{"out_dir", "records", "rows",
+    "cases", "files", "time_s"}``. ``command``: the command line recorded in README.md."""
+    from tqdm.auto import tqdm
+
+    from dss.io_utils import atomic_write_json, atomic_write_text
+    from experiments.common import save_config
+
+    t0 = time.perf_counter()
+    noise, points, seed = float(cfg.noise), int(cfg.points), int(cfg.seed)
+    if not (noise > 0 and math.isfinite(noise)):
+        raise ValueError(f"noise must be a positive fraction of the bbox diagonal, got {cfg.noise}")
+    if points < 32:
+        raise ValueError(f"points must be >= 32, got {points}")
+    methods = method_list(cfg)
+    _check_params(cfg, methods, noise)
+    cases = case_list(cfg)
+    out = Path(os.path.expanduser(str(cfg.out_dir))).absolute()
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out)
+    threads = int(cfg.threads) if cfg.get("threads") else None
+    overwrite, dss_methods = bool(cfg.get("overwrite", False)), dict(cfg.dss_methods or {})
+    records, case_info = [], []
+    bar = tqdm(total=len(cases) * len(methods), desc="denoise table", unit="run",
+               disable=not cfg.get("progress", True), dynamic_ncols=True)
+    for case in cases:
+        name = case["name"]
+        cdir, rdir = out / "cases" / _safe(name), out / "records" / _safe(name)
+        bar.set_description(f"{name}: preparing")
+        meta = prepare_case(case, cdir, points, noise, seed, overwrite)
+        case_info.append(meta)
+        if meta["status"] == "skipped":
+            log.warning("case %s skipped: %s", name, meta["reason"])
+            records += [{"case": name, "method": m, "kind": None, "status": "skipped", "failed": True,
+                         "message": meta["reason"], "metrics": None} for m in ["input", *methods]]
+            bar.update(len(methods))
+            continue
+        if meta.get("remade"):
+            for f in rdir.glob("*.json"):  # made for the old case files
+                f.unlink()
+        rdir.mkdir(parents=True, exist_ok=True)
+        gt = _load_gt(cdir)
+        refs = _reference_rows(name, gt, rdir, bool(cfg.get("floor", True)), seed, overwrite)
+        records += refs
+        gt["input_chamfer"] = refs[0]["metrics"]["chamfer"]
+        for label in methods:
+            path = rdir / f"{_safe(label)}.json"
+            req = _request(label, cfg, noise)
+            limit = float((cfg.time_limits or {}).get(label, cfg.time_limit_s))
+            old = None if overwrite else _read_json(path)
+            if _reusable(old, req, limit):
+                records.append(old)
+                bar.update(1)
+                continue
+            bar.set_description(f"{name}: {label}")
+            out_ply = out / "outputs" / _safe(name) / f"{_safe(label)}.ply" if cfg.get("save_outputs", True) else None
+            if label in dss_methods:
+                rec = _run_dss(req["overrides"], cdir, gt, noise, limit, threads,
+                               out / "runs" / _safe(name) / _safe(label), out_ply)
+            else:
+                rec = _run_baseline(req["spec"], gt, req["params"], limit, threads, out_ply)
+            rec = {"case": name, "method": label, **rec, "request": req}
+            atomic_write_json(path, rec)
+            cd = (rec.get("metrics") or {}).get("chamfer")
+            log.info("%s / %s: %s%s (%s s)", name, label, rec["status"], f", CD x1e4 {cd:.4g}" if cd else "",
+                     _fmt(rec.get("time_s")))
+            records.append(rec)
+            bar.update(1)
+    bar.close()
+
+    ready = [c["name"] for c in case_info if c["status"] != "skipped"]
+    rows = summarize(records, methods, ready)
+    title = f"Point cloud denoising: {points} points, noise {noise:g} x bbox diagonal"
+    notes = [f"`{PROTOCOL}` protocol (dss/metrics.py): clean cloud centred, bbox diagonal 1; CD x1e4, HD x1e3 "
+             "(symmetric, not squared), P2M x1e4 (two-sided, PyTorch3D's point_mesh_face_distance, exact "
+             "triangle distances); lower is better",
+             "time: baselines: the method call in its worker process; DSS: the optimisation (rendering, "
+             "reference generation, updates), without start-up, file input and normal estimation",
+             f"threads per method: {threads or 'default'}; time limit {cfg.time_limit_s:g} s per run"
+             + (f" (per method: {dict(cfg.time_limits)})" if cfg.time_limits else ""),
+             f"DSS overrides: {_plain(cfg.get('dss_overrides'))}; baseline parameters: "
+             "preset_params(method, noise) (+ params), see table.json"]
+    md = render_markdown(rows, case_info, title, notes)
+    files = {"markdown": "table.md", "json": "table.json", "readme": "README.md", "config": "config.yaml"}
+    if rows and plot_accuracy_vs_time(rows, out / "accuracy_vs_time.png", title):
+        files["chart"] = "accuracy_vs_time.png"
+    elapsed = time.perf_counter() - t0
+    result = {"title": title, "protocol": PROTOCOL, "points": points, "noise": noise, "seed": seed,
+              "methods": methods, "cases": case_info, "rows": rows, "records": records, "versions": _versions(),
+              "config": OmegaConf.to_container(cfg, resolve=True), "time_s": elapsed, "files": files,
+              "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+    atomic_write_json(out / "table.json", result)
+    atomic_write_text(out / "table.md", md)
+    command = command or "python -c 'experiments.denoise_table.run(cfg)' (the config is config.yaml)"
+    atomic_write_text(out / "README.md", (
+        f"# {title}\n\nProduced by (from the repository root):\n\n```\n{command}\n```\n\n"
+        f"Last run: {time.strftime('%Y-%m-%d %H:%M:%S')}, {elapsed:.0f} s (resumed records not rerun), "
+        f"{os.cpu_count()} CPU cores, load average {result['load_average']}.\n\n"
+        "Files: `table.md` (the table), `table.json` (every record: case, method, parameters, status, "
+        "metrics, times, versions), `accuracy_vs_time.png`, `config.yaml`, `cases/` (noisy, clean, mesh "
+        "PLYs), `records/` (one JSON per case and method; delete one to rerun it), `outputs/` (each "
+        "method's cloud), `runs/` (DSS run directories and logs).\n"))
+    return {"out_dir": str(out), "records": records, "rows": rows, "cases": case_info, "files": files,
+            "time_s": elapsed, "markdown": md}
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="denoise_table")
+def _main(cfg: DictConfig) -> None:
+    res = run(cfg, command=shlex.join(["dss-denoise-table", *sys.argv[1:]]))
+    print(res["markdown"])
+    print(f"table: {Path(res['out_dir']) / 'table.md'} ({res['time_s']:.0f} s)")
+
+
+def main() -> None:
+    _main()
+
+
+if __name__ == "__main__":
+    main()

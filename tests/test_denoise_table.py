@@ -1,0 +1,224 @@
+"""dss-denoise-table: one tiny table end to end (two cheap baselines, a crashing and a hanging
+fake method, L0-DSS with a 3-step schedule, a missing mesh file), resume, config checks."""
+
+from __future__ import annotations
+
+import json
+import re
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+import experiments.denoise_table as dt
+from dss.metrics import evaluate, load_mesh, load_points
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+METHODS = ["cgal_jet", "open3d_taubin", "fake_crash", "fake_hang", "dss_l0"]
+FAKES = textwrap.dedent(
+    """
+    import time
+
+    def crash(points, normals=None):
+        raise RuntimeError("boom from a fake method")
+
+    def hang(points, normals=None):
+        time.sleep(60)
+        return points
+    """
+)
+
+
+def make_cfg(out: Path, fakes: Path, methods=METHODS, *extra: str):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("denoise_table", overrides=[
+            f"out_dir={out}", "points=1500", "noise=0.01", "generated.count=0", "progress=false",
+            f"methods=[{','.join(methods)}]", f"+custom_methods.fake_crash={fakes}:crash",
+            f"+custom_methods.fake_hang={fakes}:hang", "+time_limits.fake_hang=2", *extra])
+    cfg.cases = [{"name": "tiny", "family": "superquadric", "index": 26, "resolution": 32},
+                 {"name": "kangaroo", "mesh": str(out.parent / "absent" / "Kangaroo_V10k.ply")}]
+    cfg.dss_overrides = ["optimizer.cycles=1", "optimizer.normal_steps=2", "views=2", "image_size=48",
+                         "figures.views=1", "figures.image_size=32"]
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def fakes(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("fakes") / "fake_methods.py"
+    path.write_text(FAKES)
+    return path
+
+
+@pytest.fixture(scope="module")
+def table(tmp_path_factory, fakes) -> dict:
+    out = tmp_path_factory.mktemp("table") / "out"
+    res = dt.run(make_cfg(out, fakes), command="dss-denoise-table (test)")
+    return {"out": out, "res": res, "fakes": fakes}
+
+
+def _recs(res: dict, case: str) -> dict:
+    return {r["method"]: r for r in res["records"] if r["case"] == case}
+
+
+def _md_rows(md: str) -> dict:
+    """First table of table.md: {row label: [cells]}."""
+    rows = {}
+    for line in md.split("## Cases")[0].splitlines():
+        if line.startswith("| ") and not line.startswith("| method"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_table_files_and_rows(table):
+    out = table["out"]
+    for f in ("table.md", "table.json", "accuracy_vs_time.png", "README.md", "config.yaml",
+              "cases/tiny/noisy.ply", "cases/tiny/clean.ply", "cases/tiny/mesh.ply"):
+        assert (out / f).is_file() and (out / f).stat().st_size > 0, f
+    md = (out / "table.md").read_text()
+    rows = _md_rows(md)
+    assert set(rows) == {"input (noisy)", "floor (2nd clean sampling)", *METHODS}
+    header = next(line for line in md.splitlines() if line.startswith("| method"))
+    assert "tiny CD" in header and "tiny P2M" in header and "mean CD" in header and "kangaroo CD" not in header
+    assert "dss-denoise-table (test)" in (out / "README.md").read_text()
+    saved = json.loads((out / "table.json").read_text())
+    assert {(r["case"], r["method"]) for r in saved["records"]} == {
+        (r["case"], r["method"]) for r in table["res"]["records"]}
+    assert saved["versions"]["numpy"] and not list(out.rglob(".*.tmp*"))  # atomic writes leave no temp files
+
+
+def test_metrics_are_paper_protocol_of_the_outputs(table):
+    out, recs = table["out"], _recs(table["res"], "tiny")
+    noisy, clean = load_points(out / "cases/tiny/noisy.ply"), load_points(out / "cases/tiny/clean.ply")
+    mesh = load_mesh(out / "cases/tiny/mesh.ply")
+    assert len(clean) == 1500 and len(noisy) == 1500
+    ref = evaluate(noisy, clean, mesh, "paper")
+    assert recs["input"]["metrics"]["chamfer"] == pytest.approx(ref.chamfer)
+    assert recs["input"]["metrics"]["p2m"] == pytest.approx(ref.p2m)
+    jet = recs["cgal_jet"]
+    assert jet["status"] == "ok" and jet["params"]["k"] == 96  # the 1% preset
+    got = evaluate(load_points(jet["output"]), clean, mesh, "paper")
+    assert jet["metrics"]["hausdorff"] == pytest.approx(got.hausdorff)
+    assert jet["metrics"]["chamfer"] < ref.chamfer and jet["time_s"] > 0
+    # DSS ran as a subprocess after the failures and was scored (ok, or worse than its input)
+    d = recs["dss_l0"]
+    assert d["kind"] == "dss" and d["status"] in ("ok", "worse_than_input") and d["metrics"]["p2m"] > 0
+    assert (Path(d["run_dir"]) / "metrics.json").is_file() and d["time_s"] > 0
+    assert "optimizer.cycles=1" in d["command"] and "reference=l0" in d["command"]
+
+
+def test_failures_are_recorded_and_shown(table):
+    recs = _recs(table["res"], "tiny")
+    assert recs["fake_crash"]["status"] == "crash" and "boom" in recs["fake_crash"]["message"]
+    assert recs["fake_hang"]["status"] == "timeout" and recs["fake_hang"]["time_limit_s"] == 2
+    assert recs["fake_crash"].get("metrics") is None
+    rows = _md_rows(table["res"]["markdown"])
+    assert rows["fake_crash"][:3] == ["crash"] * 3 and rows["fake_hang"][0] == "timeout"
+    assert "## Failures" in table["res"]["markdown"]
+
+
+def test_best_value_in_bold(table):
+    rows = _md_rows(table["res"]["markdown"])
+    recs = _recs(table["res"], "tiny")
+    cds = {m: recs[m]["metrics"]["chamfer"] for m in METHODS if recs[m].get("metrics")}
+    best = min(cds, key=cds.get)
+    assert rows[best][0].startswith("**")
+    assert not any(rows[m][0].startswith("**") for m in cds if cds[m] > cds[best])
+    assert not rows["input (noisy)"][0].startswith("**")
+
+
+def test_missing_mesh_is_a_skipped_case(table):
+    recs = _recs(table["res"], "kangaroo")
+    assert set(recs) == {"input", *METHODS}
+    for r in recs.values():
+        assert r["status"] == "skipped" and "Kangaroo_V10k.ply not found" in r["message"]
+    assert re.search(r"\| kangaroo \|.*\| skipped: mesh file .*Kangaroo_V10k\.ply not found", table["res"]["markdown"])
+
+
+def test_resume_skips_completed_records(table, monkeypatch):
+    out, fakes = table["out"], table["fakes"]
+    before = {p.name: p.read_text() for p in (out / "records/tiny").glob("*.json")}
+
+    def boom(*a, **k):
+        raise AssertionError("a completed record was rerun")
+
+    monkeypatch.setattr(dt, "_run_dss", boom)
+    monkeypatch.setattr(dt, "run_method", boom)
+    res = dt.run(make_cfg(out, fakes))
+    assert {p.name: p.read_text() for p in (out / "records/tiny").glob("*.json")} == before
+    assert res["markdown"].split("## Cases")[0] == table["res"]["markdown"].split("## Cases")[0]
+
+    # a deleted record and a changed parameter are rerun; nothing else is
+    calls = []
+    from experiments.baselines.runner import run_method
+
+    def counting(spec, *a, **k):
+        calls.append((spec, k.get("params")))
+        return run_method(spec, *a, **k)
+
+    monkeypatch.setattr(dt, "run_method", counting)
+    (out / "records/tiny/open3d_taubin.json").unlink()
+    res = dt.run(make_cfg(out, fakes, METHODS, "+params.cgal_jet.k=8"))
+    assert sorted(c[0] for c in calls) == ["cgal_jet", "open3d_taubin"]
+    assert _recs(res, "tiny")["cgal_jet"]["params"]["k"] == 8
+
+
+def test_config_errors_before_any_work(tmp_path, fakes):
+    out = tmp_path / "bad"
+    with pytest.raises(ValueError, match=r"methods: unknown \['nope'\]"):
+        dt.run(make_cfg(out, fakes, ["cgal_jet", "nope"]))
+    with pytest.raises(ValueError, match=r"params.cgal_jet: unknown parameter\(s\) \['kk'\]"):
+        dt.run(make_cfg(out, fakes, ["cgal_jet"], "+params.cgal_jet.kk=3"))
+    assert not out.exists()
+
+
+def test_generated_cases_and_paths(tmp_path):
+    shapes = dt.test_split_shapes(3, "cpu")
+    # the first test shape of the cpu preset is the shipped example (experiments/make_example.py)
+    assert (shapes[0]["family"], shapes[0]["index"]) == ("superquadric", 26)
+    assert len({s["family"] for s in shapes}) == 3 and all(s["resolution"] == 96 for s in shapes)
+    # ... and at 20K points and 1% noise its case files are the shipped example's, bit for bit
+    example = dt.REPO_ROOT / "experiments/assets/example"
+    if (example / "noisy_1pct.ply").is_file():
+        meta = dt.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.01, seed=0)
+        assert meta["status"] == "ready" and meta["source"]["shape_seed"] == 787853971
+        for ours, shipped in (("noisy.ply", "noisy_1pct.ply"), ("clean.ply", "clean.ply")):
+            np.testing.assert_array_equal(load_points(tmp_path / "ex" / ours), load_points(example / shipped))
+        again = dt.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.01, seed=0)  # cached: not remade
+        assert again == meta
+        with pytest.raises(ValueError, match="made with other settings.*overwrite=true"):
+            dt.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.003, seed=0)
+    assert dt.resolve_repo_path("../shared/data/K.ply") == dt.REPO_ROOT.parent / "shared/data/K.ply"
+    assert dt.resolve_repo_path("/abs/x.ply") == Path("/abs/x.ply")
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("denoise_table")
+    assert cfg.out_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
+    labels = dt.method_list(cfg)
+    assert labels[-2:] == ["dss_pix2pix", "dss_l0"] and "cgal_jet" in labels
+    req = dt._request("dss_pix2pix", cfg, 0.01)
+    assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
+
+
+def test_markdown_marks_partial_means_and_worse_than_input():
+    def rec(case, method, status, cd=None, t=1.0):
+        m = None if cd is None else {"chamfer": cd, "hausdorff": 10 * cd, "p2m": cd / 2}
+        return {"case": case, "method": method, "kind": "input" if method == "input" else "baseline",
+                "status": status, "metrics": m, "time_s": None if method == "input" else t, "message": ""}
+
+    recs = [rec("a", "input", "reference", 1.0), rec("b", "input", "reference", 2.0),
+            rec("a", "good", "ok", 0.5, 2.0), rec("b", "good", "ok", 0.7, 4.0),
+            rec("a", "half", "ok", 0.1), rec("b", "half", "crash"),
+            rec("a", "bad", "worse_than_input", 1.5), rec("b", "bad", "ok", 1.9)]
+    rows = dt.summarize(recs, ["good", "half", "bad"], ["a", "b"])
+    info = [{"name": c, "status": "ready", "key": {"points": 10, "noise": 0.01, "case": {}},
+             "source": {"family": "x", "index": 0}} for c in ("a", "b")]
+    md = _md_rows(dt.render_markdown(rows, info, "t", []))
+    # columns: a CD, a HD, a P2M, b CD, b HD, b P2M, mean CD, mean HD, mean P2M, time
+    assert md["half"][0] == "**0.1**" and md["half"][3] == "crash" and md["half"][6] == "0.1 (1/2)"
+    assert md["good"][6] == "**0.6**" and md["good"][9] == "3" and md["bad"][9] == "**1**"  # fastest complete
+    assert md["bad"][0] == "1.5 †" and not md["bad"][3].startswith("**")
+    good = next(r for r in rows if r["method"] == "good")
+    assert good["pareto"] == {"chamfer": True, "p2m": True} and np.isclose(good["mean"]["p2m"], 0.3)
+    assert "half" not in [r["method"] for r in rows if r["pareto"].get("chamfer")]
