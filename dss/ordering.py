@@ -4,9 +4,9 @@ The CPU kernels walk points in index order and touch, for each point, the pixels
 splat in every view. When consecutive points are neighbours in space, they are neighbours on
 screen in every view, and those pixels stay in cache. Point clouds from files or samplers come in
 arbitrary order; :func:`dss.render.render` therefore renders a Morton-sorted copy and returns
-everything in the caller's order. Measured on the shipped example (20K points, 12 views,
-256 px, one thread, ``python -m experiments.bench_render --order``): forward 1.7x, position
-backward 2.2x, normal backward 1.9x faster than in the file's order.
+everything in the caller's order (bit-identical results up to the order of exact depth ties).
+The gain is measured by ``dss-bench --order`` (file order against sorted, interleaved runs;
+numbers in ``results/bench/render_bench.md`` and README "Renderer speed").
 """
 
 from __future__ import annotations
@@ -19,23 +19,23 @@ __all__ = ["morton_codes", "spatial_order", "SORT_MIN_POINTS"]
 SORT_MIN_POINTS = 2048
 
 
-def _spread3(x: torch.Tensor, bits: int) -> torch.Tensor:
-    """Interleave: bit b of x goes to bit 3b of the result (int64)."""
-    out = torch.zeros_like(x)
-    for b in range(bits):
-        out |= ((x >> b) & 1) << (3 * b)
-    return out
+def _spread3(x: torch.Tensor) -> torch.Tensor:
+    """Interleave the low 10 bits of x (int64): bit b moves to bit 3b (magic-number spreading)."""
+    x = (x | (x << 16)) & 0x030000FF
+    x = (x | (x << 8)) & 0x0300F00F
+    x = (x | (x << 4)) & 0x030C30C3
+    return (x | (x << 2)) & 0x09249249
 
 
-def morton_codes(points: torch.Tensor, bits: int = 10) -> torch.Tensor:
-    """(N, 3) positions -> (N,) int64 Z-order codes on a 2^bits grid over the bounding box."""
-    p = points.detach().to(torch.float64)
+def morton_codes(points: torch.Tensor) -> torch.Tensor:
+    """(N, 3) positions -> (N,) int64 Z-order codes on a 1024^3 grid over the bounding box."""
+    p = points.detach()
     lo = p.min(dim=0).values
     ext = (p.max(dim=0).values - lo).clamp_min(1e-30)
-    q = ((p - lo) / ext * (2**bits - 1)).round().to(torch.int64).clamp(0, 2**bits - 1)
-    return _spread3(q[:, 0], bits) | (_spread3(q[:, 1], bits) << 1) | (_spread3(q[:, 2], bits) << 2)
+    q = ((p - lo) * (1023.0 / ext)).to(torch.int64).clamp_(0, 1023)
+    return _spread3(q[:, 0]) | (_spread3(q[:, 1]) << 1) | (_spread3(q[:, 2]) << 2)
 
 
-def spatial_order(points: torch.Tensor, bits: int = 10) -> torch.Tensor:
+def spatial_order(points: torch.Tensor) -> torch.Tensor:
     """(N,) int64 permutation that sorts ``points`` along the Z-order curve (stable)."""
-    return torch.argsort(morton_codes(points, bits), stable=True)
+    return torch.argsort(morton_codes(points), stable=True)

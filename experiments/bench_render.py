@@ -106,6 +106,40 @@ def bench_backward(points, normals, cams, backend: str, reps: int, window: int) 
     return {"forward_with_grad_ms": 1e3 * statistics.median(fwd_t), "backward_ms": 1e3 * statistics.median(bwd_t)}
 
 
+def bench_ordering(points, normals, cams, reps: int) -> dict:
+    """Median times (ms) with ``RenderSettings.spatial_sort`` off and on, measured interleaved (so
+    both see the same machine load): forward without grad, and forward + backward of a position
+    step and of a normal step (L1 to a perturbed render). The cloud is in its file's order."""
+    from dss.splats import auto_sigma
+
+    sigma = auto_sigma(points)
+    with torch.no_grad():
+        target = render(points + 0.003 * torch.randn_like(points), normals, cams, backend="cpp", sigma=sigma).images
+    times: dict = {}
+    for r in range(reps + 1):
+        for sort in (False, True):
+            s = RenderSettings(spatial_sort=sort)
+            t = {}
+            with torch.no_grad():
+                t0 = time.perf_counter()
+                render(points, normals, cams, s, backend="cpp", sigma=sigma)
+                t["forward_nograd"] = time.perf_counter() - t0
+            for kind in ("position", "normal"):
+                p = points.clone().requires_grad_(kind == "position")
+                n = normals.clone().requires_grad_(kind == "normal")
+                t0 = time.perf_counter()
+                loss = (render(p, n, cams, s, backend="cpp", sigma=sigma).images - target).abs().mean()
+                t1 = time.perf_counter()
+                loss.backward()
+                t[f"{kind}_forward"], t[f"{kind}_backward"] = t1 - t0, time.perf_counter() - t1
+            if r > 0:  # the first round warms up
+                for k, v in t.items():
+                    times.setdefault("sorted" if sort else "file_order", {}).setdefault(k, []).append(v)
+    out = {mode: {k + "_ms": 1e3 * statistics.median(v) for k, v in d.items()} for mode, d in times.items()}
+    out["speedup"] = {k: out["file_order"][k] / out["sorted"][k] for k in out["sorted"]}
+    return out
+
+
 def machine_info() -> dict:
     cpu = platform.processor()
     try:
@@ -135,6 +169,8 @@ def run(argv=None) -> dict:
     ap.add_argument("--windows", type=int, nargs="*", default=[0, 2, 4, 8, 16],
                     help="visibility-gradient window half sizes timed for the backward pass (C++ backend)")
     ap.add_argument("--backward-sizes", type=int, nargs="*", default=[20000])
+    ap.add_argument("--order", action="store_true",
+                    help="also compare the file's point order with render()'s spatial sort (backward sizes)")
     ap.add_argument("--out", default="results/bench")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -142,7 +178,7 @@ def run(argv=None) -> dict:
 
     if not _ext.cpu_available():
         raise SystemExit(f"the C++ backend is not available: {_ext.build_error()}")
-    rows, back_rows = [], []
+    rows, back_rows, order_rows = [], [], []
     for n in args.sizes:
         pts, nrm, src = benchmark_cloud(n)
         cams = cameras_for(pts, args.views, args.image_size)
@@ -161,7 +197,12 @@ def run(argv=None) -> dict:
                 b["backward_over_forward"] = b["backward_ms"] / row["cpp_forward_ms"]
                 back_rows.append(b)
                 log.info("%d points window %d: backward %.1f ms (%.2fx forward)", n, w, b["backward_ms"], b["backward_over_forward"])
-    result = {"machine": machine_info(), "forward": rows, "backward": back_rows,
+            if args.order:
+                o = bench_ordering(pts, nrm, cams, args.reps)
+                o["points"] = n
+                order_rows.append(o)
+                log.info("%d points: spatial sort speed-ups %s", n, {k: round(v, 2) for k, v in o["speedup"].items()})
+    result = {"machine": machine_info(), "forward": rows, "backward": back_rows, "ordering": order_rows,
               "command": "dss-bench " + " ".join(argv if argv is not None else __import__("sys").argv[1:])}
     out = Path(args.out)
     atomic_write_json(out / "render_bench.json", result)
@@ -175,6 +216,12 @@ def run(argv=None) -> dict:
                "|---|---|---|---|---|"]
         for b in back_rows:
             md.append(f"| {b['points']} | {b['window']} | {b['forward_with_grad_ms']:.1f} | {b['backward_ms']:.1f} | {b['backward_over_forward']:.2f} |")
+    if order_rows:
+        md += ["", "| points | pass | file order (ms) | spatially sorted (ms) | speed-up |", "|---|---|---|---|---|"]
+        for o in order_rows:
+            for k in o["sorted"]:
+                md.append(f"| {o['points']} | {k[:-3].replace('_', ' ')} | {o['file_order'][k]:.1f} | "
+                          f"{o['sorted'][k]:.1f} | {o['speedup'][k]:.2f}x |")
     md.append("")
     md.append(f"Machine: {result['machine']['cpu']}, {result['machine']['torch_threads']} torch threads; median of {args.reps} runs after a warm-up.")
     atomic_write_text(out / "render_bench.md", "\n".join(md) + "\n")
