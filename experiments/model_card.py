@@ -63,6 +63,8 @@ def card(run_dir: Path, evaluation: dict | None = None) -> str:
         f"{(m.get('fit_seconds') or 0) / 60:.1f} min on the 2-core CPU, {m.get('torch_threads')} torch thread(s), "
         f"{(m.get('train_images_per_s') or 0):.1f} images/s",
         f"- best checkpoint: `{Path(m.get('best_ckpt') or '').name}`",
+        (f"- resumed from `{m['resumed_from']}`: the time above is this run's only (the Lightning timer "
+         "counted the earlier run's time against trainer.max_time)") if m.get("resumed_from") else None,
         "",
         "## Validation (best checkpoint, pixels covered in either render)",
         "| | output vs clean | noisy input vs clean |",

@@ -5,7 +5,8 @@
     python -m experiments.oracle_refine --set projection_weight=0.02 repulsion_weight=0.05
 
 The references are renders of the *clean* cloud from the same cameras (the spec's camera model,
-the denoiser's point light), so the run separates the optimiser from the image denoiser: if
+the denoiser's point light) and the optimiser settings are dss-denoise's (``conf/denoise.yaml``),
+so the run separates the optimiser from the image denoiser: if
 the oracle run improves Chamfer and ``dss-denoise`` does not, the learned references are what
 limits the pipeline. Prints Chamfer (paper protocol, x1e4) every ``--every`` steps and writes a
 JSON with the curve (``--out``).
@@ -35,6 +36,15 @@ def _value(text: str):
     return text
 
 
+def denoise_optimizer_defaults() -> dict:
+    """The optimiser block of conf/denoise.yaml (dss-denoise's settings), so that the oracle run
+    differs from the main job only in its references."""
+    from omegaconf import OmegaConf
+
+    conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
+    return dict(OmegaConf.to_container(OmegaConf.load(conf).optimizer, resolve=True))
+
+
 def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: int = 16, image_size: int = 128,
         every: int = 40, overrides: dict | None = None, seed: int = 0) -> dict:
     from data_prep.render_spec import load_render_spec
@@ -60,8 +70,7 @@ def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: in
 
         return render(ref_p, ref_n, cams, settings, shading=shading).images
 
-    cfg = OptimizerConfig(**{**dict(cycles=cycles, normal_steps=19, point_steps=1, repulsion_weight=0.0,
-                                    projection_weight=0.3, seed=seed), **(overrides or {})})
+    cfg = OptimizerConfig(**{**denoise_optimizer_defaults(), "cycles": cycles, "seed": seed, **(overrides or {})})
     sampler = SpecViewSampler(spec, views=cfg.views, seed=seed, jitter=cfg.view_jitter)
     curve = [{"step": 0, "chamfer": evaluate(npt, cp).chamfer}]
     log.info("input Chamfer %.3f (x1e4)", curve[0]["chamfer"])

@@ -196,7 +196,7 @@ def test_generated_cases_and_paths(tmp_path):
         cfg = compose("denoise_table")
     assert cfg.out_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
     labels = dt.method_list(cfg)
-    assert labels[-2:] == ["dss_pix2pix", "dss_l0"] and "cgal_jet" in labels
+    assert labels[-3:] == ["dss_pix2pix", "dss_l0", "dss_identity"] and "cgal_jet" in labels
     req = dt._request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
 
