@@ -298,6 +298,32 @@ def point_to_mesh_sq(
     return _refine_point_to_triangles(points, d2, tv, min_triangle_area)
 
 
+def normal_error_deg(points: Any, normals: Any, mesh: Any) -> dict:
+    """Unoriented angle (degrees) between each normal and the normal of the mesh triangle
+    closest to its point (open3d RaycastingScene): ``{"mean", "median", "p90"}``.
+
+    Args:
+        points, normals: (K, 3) in the mesh's frame (normals need not be unit length).
+        mesh: (vertices, faces) or anything :func:`as_mesh` takes.
+    Unoriented (|cos|) because point normals from PCA carry no sign of their own.
+    """
+    import open3d as o3d
+
+    p = as_points(points)
+    n = as_points(normals, "normals")
+    if n.shape != p.shape:
+        raise ValueError(f"normals {n.shape} must match points {p.shape}")
+    vertices, faces = as_mesh(mesh)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    tri = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["primitive_ids"].numpy().astype(np.int64)
+    tv = vertices[faces[tri]]
+    fn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    cos = np.abs((fn * n).sum(1)) / np.maximum(np.linalg.norm(fn, axis=1) * np.linalg.norm(n, axis=1), 1e-30)
+    ang = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+    return {"mean": float(ang.mean()), "median": float(np.median(ang)), "p90": float(np.percentile(ang, 90))}
+
+
 def _refine_point_to_triangles(
     points: np.ndarray,
     best: np.ndarray,

@@ -220,6 +220,8 @@ def test_denoise_app_l0_end_to_end(case, tmp_path):
     assert m["render"]["image_size"] == [64, 64] and m["reference"]["name"] == "l0"
     assert m["input"]["normals"].startswith("estimated") and m["input"]["nan_rows_dropped"] == 0
     assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0
+    ne = m["normal_error_deg"]
+    assert set(ne) == {"input_pca", "optimized", "output"} and all(0 <= v["mean"] <= 90 for v in ne.values())
     from dss.pointcloud import load_ply
 
     res = load_ply(out / "denoised.ply")
@@ -315,3 +317,18 @@ def test_shipped_example_is_complete_and_consistent():
 
     assert abs(measured_noise_std(clean, noisy) - 0.01) < 5e-4
     assert abs(np.linalg.norm(v.max(0) - v.min(0)) - 1.0) < 1e-3
+
+
+def test_output_normals_pca_takes_signs_from_the_optimised_ones():
+    from experiments.denoise import output_normals
+
+    g = torch.Generator().manual_seed(0)
+    pts = torch.cat([torch.rand(400, 2, generator=g), 0.001 * torch.randn(400, 1, generator=g)], dim=1)
+    opt = torch.tensor([0.3, 0.0, 1.0]).repeat(400, 1)
+    opt[::2] *= -1  # DSS's normals carry the orientation, PCA's do not
+    out = output_normals(pts, opt, "pca", k=16)
+    assert torch.allclose(out.abs(), torch.tensor([0.0, 0.0, 1.0]).expand(400, 3), atol=0.05)
+    assert ((out * opt).sum(1) > 0).all()
+    assert output_normals(pts, opt, "optimized") is opt
+    with pytest.raises(ValueError, match="normals.output"):
+        output_normals(pts, opt, "nope")

@@ -214,3 +214,18 @@ def test_real_mesh_noise_orders_metrics():
     lo = M.evaluate(c + rng.normal(scale=0.003 * diag, size=c.shape), c, (v, f), "score")
     hi = M.evaluate(c + rng.normal(scale=0.01 * diag, size=c.shape), c, (v, f), "score")
     assert lo.chamfer < hi.chamfer and lo.p2m < hi.p2m and lo.hausdorff < hi.hausdorff
+
+
+def test_normal_error_against_a_plane():
+    """Normals tilted by a known angle from a z = 0 plane; the sign of a normal does not count."""
+    verts = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-0.9, 0.9, (50, 2)), rng.normal(0, 0.01, 50)]
+    tilt = np.radians(np.where(np.arange(50) < 25, 10.0, 30.0))
+    nrm = np.c_[np.sin(tilt), np.zeros(50), np.cos(tilt)] * np.where(np.arange(50) % 2, 1, -2)[:, None]
+    e = M.normal_error_deg(pts, nrm, (verts, faces))
+    assert e["mean"] == pytest.approx(20.0, abs=1e-3) and e["median"] == pytest.approx(20.0, abs=1e-3)
+    assert e["p90"] == pytest.approx(30.0, abs=1e-3)
+    with pytest.raises(ValueError, match="normals"):
+        M.normal_error_deg(pts, nrm[:10], (verts, faces))
