@@ -12,7 +12,8 @@ normalised to a unit bounding-box diagonal. Every cycle 12 views are sampled aro
 *input* is rendered with the denoiser's training render setting (the model file's metadata, or
 ``conf/render/pairs.yaml`` for the filters), the renders are mapped through the reference
 generator (``conf/reference``), and DSS optimises normals to match them (the paper's local
-schedule, T_n = 19 normal steps per cycle, up to 16 cycles) while the projection term moves the
+schedule, T_n = 19 normal steps per cycle; up to 16 cycles, ``cycles_by_noise`` for ``auto``) while
+the projection term moves the
 points onto the planes of the corrected normals. The paper's T_p = 1 image-driven point step
 per cycle is ``optimizer.point_steps=1``: with learned references it made the result worse
 (measurements in ``conf/denoise.yaml``). Writes into the run directory: ``config.yaml``, the denoised PLY (input units),
@@ -122,6 +123,21 @@ def score(pred: np.ndarray, clean: np.ndarray | None, mesh, protocols) -> dict:
     if clean is None:
         return {}
     return {pr: evaluate(pred, clean, mesh, pr).to_dict() for pr in protocols}
+
+
+def resolve_cycles(cfg: DictConfig, noise: float) -> dict:
+    """Set ``cfg.optimizer.cycles`` when it is ``auto``: the ``cycles_by_noise`` entry nearest (in
+    log scale) to the noise level in use. Returns what was chosen and why (for metrics.json)."""
+    setting = cfg.optimizer.cycles
+    if str(setting) != "auto":
+        return {"setting": int(setting), "used": int(setting)}
+    table = {float(k): int(v) for k, v in (cfg.get("cycles_by_noise") or {}).items()}
+    if not table:
+        raise ValueError("optimizer.cycles=auto needs cycles_by_noise ({noise level: cycles})")
+    level = min(table, key=lambda lv: abs(np.log(lv) - np.log(noise)))
+    cfg.optimizer.cycles = table[level]
+    return {"setting": "auto", "used": table[level], "noise": noise, "nearest_level": level,
+            "cycles_by_noise": table}
 
 
 def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: int = 16) -> torch.Tensor:
@@ -376,6 +392,7 @@ def run(cfg: DictConfig) -> dict:
     if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
+    cycles_note = resolve_cycles(cfg, noise)
     base_spec = None
     if cfg.get("image_size"):
         from data_prep.render_spec import load_render_spec
@@ -431,6 +448,7 @@ def run(cfg: DictConfig) -> dict:
         "output": str(output),
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
         "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
+        "cycles": cycles_note,
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},

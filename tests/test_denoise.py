@@ -332,3 +332,19 @@ def test_output_normals_pca_takes_signs_from_the_optimised_ones():
     assert output_normals(pts, opt, "optimized") is opt
     with pytest.raises(ValueError, match="normals.output"):
         output_normals(pts, opt, "nope")
+
+
+def test_auto_cycles_follow_the_noise_level():
+    from omegaconf import OmegaConf
+
+    from experiments.denoise import resolve_cycles
+
+    cfg = OmegaConf.create({"optimizer": {"cycles": "auto"}, "cycles_by_noise": {0.003: 2, 0.01: 16}})
+    assert resolve_cycles(cfg, 0.0042)["used"] == 2 and cfg.optimizer.cycles == 2
+    cfg.optimizer.cycles = "auto"
+    note = resolve_cycles(cfg, 0.0075)
+    assert note["used"] == 16 and note["nearest_level"] == 0.01 and cfg.optimizer.cycles == 16
+    fixed = OmegaConf.create({"optimizer": {"cycles": 5}})
+    assert resolve_cycles(fixed, 0.003) == {"setting": 5, "used": 5}
+    with pytest.raises(ValueError, match="cycles_by_noise"):
+        resolve_cycles(OmegaConf.create({"optimizer": {"cycles": "auto"}}), 0.01)
