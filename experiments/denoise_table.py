@@ -51,7 +51,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.baselines.methods import METHODS, preset_params
-from experiments.baselines.runner import run_method
+from experiments.baselines.runner import run_method, tail_text, wait_or_kill
 
 log = logging.getLogger(__name__)
 
@@ -303,14 +303,6 @@ def _hydra_value(s: str) -> str:
     return s if re.fullmatch(r"[A-Za-z0-9_./-]+", s) else "'" + s.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
-def _tail(path: Path, n: int = 1500) -> str:
-    try:
-        data = path.read_bytes()
-    except OSError:
-        return ""
-    return data[-n:].decode("utf-8", "replace")
-
-
 def _run_dss(overrides: list[str], case_dir: Path, gt: dict, noise: float, limit: float,
              threads: int | None, run_dir: Path, out_ply: Path | None) -> dict:
     """One dss-denoise subprocess on one case (its own process group, killed at ``limit`` s);
@@ -333,22 +325,16 @@ def _run_dss(overrides: list[str], case_dir: Path, gt: dict, noise: float, limit
     with open(logf, "wb") as lf:
         proc = subprocess.Popen([sys.executable, "-m", "experiments.denoise", *args], stdout=lf,
                                 stderr=subprocess.STDOUT, env=env, cwd=str(REPO_ROOT), start_new_session=True)
-        try:
-            code = proc.wait(timeout=limit)
-        except subprocess.TimeoutExpired:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            proc.wait()
+        code = wait_or_kill(proc, limit)
+        if code is None:
             rec.update(status="timeout", message=f"killed after the time limit of {limit:g} s",
-                       total_s=time.perf_counter() - t0, stderr_tail=_tail(logf))
+                       total_s=time.perf_counter() - t0, stderr_tail=tail_text(logf, 1500))
             return rec
     rec["total_s"], rec["exit_code"] = time.perf_counter() - t0, code
     mpath, ply = run_dir / "metrics.json", run_dir / "denoised.ply"
     if code != 0 or not mpath.is_file() or not ply.is_file():
         sig = f"signal {signal.Signals(-code).name}" if code < 0 else f"exit code {code}"
-        rec.update(message=f"dss-denoise failed ({sig}); see {logf}", stderr_tail=_tail(logf))
+        rec.update(message=f"dss-denoise failed ({sig}); see {logf}", stderr_tail=tail_text(logf, 1500))
         return rec
     m = json.loads(mpath.read_text())
     rec["time_s"] = m.get("time_s", {}).get("optimization")

@@ -16,7 +16,6 @@ silhouette). Writes JSON (atomically) and prints a markdown table.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
@@ -43,12 +42,12 @@ def evaluate(model: str | Path, data: str | Path, split: str = "val", max_pairs:
              batch: int = 16, threads: int = 1) -> dict:
     """Metrics of ``model`` on ``split`` of the dataset at ``data`` (see module docstring)."""
     from pix2pix.metrics import psnr
-    from pix2pix.postprocess import snap_background
+    from pix2pix.postprocess import background_snap_threshold, snap_background
     from pix2pix.runtime import OnnxDenoiser
     from pix2pix.shards import open_shard, read_manifest, select_shards
 
     den = OnnxDenoiser(model, intra_op_num_threads=threads, max_batch=batch, snap_background=False)
-    thr = OnnxDenoiser(model, intra_op_num_threads=1, snap_background=True).background_threshold
+    thr = background_snap_threshold(den.render_settings)  # what the runtime's default snap uses
     level = den.noise_level
     manifest = read_manifest(data)
     shards = select_shards(data, manifest, split, level)

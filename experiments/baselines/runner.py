@@ -153,7 +153,22 @@ def _signal_name(code: int | None) -> str | None:
         return f"signal {-code}"
 
 
-def _tail(path: str, n: int = 2000) -> str:
+def wait_or_kill(proc: subprocess.Popen, time_limit: float) -> int | None:
+    """The exit code of ``proc``, or None after killing its whole process group (it must have
+    been started with ``start_new_session=True``) when it outlives ``time_limit`` seconds."""
+    try:
+        return proc.wait(timeout=time_limit)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
+        return None
+
+
+def tail_text(path: str | os.PathLike, n: int = 2000) -> str:
+    """The last ``n`` bytes of a log file as text ("" when unreadable)."""
     try:
         with open(path, "rb") as f:
             f.seek(0, os.SEEK_END)
@@ -223,24 +238,17 @@ def run_method(
                 env=env,
                 start_new_session=True,
             )
-            try:
-                rec.exit_code = proc.wait(timeout=time_limit)
-            except subprocess.TimeoutExpired:
-                # kill the worker's whole process group (it is a new session we started)
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                proc.wait()
+            rec.exit_code = wait_or_kill(proc, time_limit)
+            if rec.exit_code is None:
                 rec.total_s = time.perf_counter() - t0
                 rec.status = "timeout"
                 rec.message = f"killed after the time limit of {time_limit:g} s"
-                rec.stderr_tail = _tail(err_path)
+                rec.stderr_tail = tail_text(err_path)
                 log.warning("%s: %s", method, rec.message)
                 return out
         rec.total_s = time.perf_counter() - t0
         rec.signal = _signal_name(rec.exit_code)
-        rec.stderr_tail = _tail(err_path)
+        rec.stderr_tail = tail_text(err_path)
         res_path = os.path.join(job, "result.json")
         if not os.path.exists(res_path):
             rec.status = "crash"
