@@ -149,7 +149,11 @@ def machine_info() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__}
+    from dss import _ext
+
+    _ext.load_cpu()
+    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__,
+            "kernel_openmp": _ext.openmp_enabled()}
 
 
 def main(argv=None) -> int:

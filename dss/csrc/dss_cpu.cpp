@@ -294,9 +294,14 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   });
   const float* SM = summ.data();
 
-  dynamic_for(N, 16, [&](int64_t k) {
-    double gw[3] = {0, 0, 0};
-    for (int64_t v = 0; v < V; ++v) {
+  // View-major: a task is one view and a run of consecutive (spatially sorted) points, so its
+  // window reads stay in one view's buffers (cache-resident) instead of striding over all V
+  // views per point. Per-view world gradients are summed over views afterwards in view order.
+  std::vector<double> gview(V * N * 3, 0.0);
+  const int64_t kChunk = 64, nchunks = (N + kChunk - 1) / kChunk;
+  dynamic_for(V * nchunks, 1, [&](int64_t task) {
+    const int64_t v = task / nchunks, k_begin = (task % nchunks) * kChunk, k_end = std::min(N, k_begin + kChunk);
+    for (int64_t k = k_begin; k < k_end; ++k) {
       const float* s = P + (v * N + k) * kFields;
       if (!(s[9] > 0.f)) continue;
       const float u = s[0], vv = s[1], z = s[6], nk = s[5];
@@ -326,8 +331,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
             if (pi[e] == (int32_t)k) { ek = e; break; }
           const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
           const float px = (float)j + 0.5f, py = (float)i + 0.5f;
-          const float zp = plane_depth(PL + (v * N + k) * 3, px, py, z,
-                                       std::sqrt((px - u) * (px - u) + (py - vv) * (py - vv)), f);
+          float zp = 0.f;  // k's tangent-plane depth at the pixel: only needed when k is not visible
           float num[16], den;
           int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
           if (k_visible) {
@@ -349,6 +353,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
               }
             }
           } else {
+            zp = plane_depth(PL + (v * N + k) * 3, px, py, z,
+                             std::sqrt((px - u) * (px - u) + (py - vv) * (py - vv)), f);
             kase = (pi[0] < 0 || zp <= d0 + merge) ? 0 : 1;
             den = nk;
             for (int64_t ch = 0; ch < C; ++ch) num[ch] = nk * wk[ch];
@@ -409,9 +415,17 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
         }
       }
       const float* Rv = Rm + v * 9;  // world gradient = R^T acc
-      for (int a = 0; a < 3; ++a) gw[a] += Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
+      double* gk = gview.data() + (v * N + k) * 3;
+      for (int a = 0; a < 3; ++a) gk[a] = Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
     }
-    for (int a = 0; a < 3; ++a) G[k * 3 + a] = (float)gw[a];
+  });
+  at::parallel_for(0, N, 1024, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      double gw[3] = {0, 0, 0};
+      for (int64_t v = 0; v < V; ++v)
+        for (int a = 0; a < 3; ++a) gw[a] += gview[(v * N + k) * 3 + a];
+      for (int a = 0; a < 3; ++a) G[k * 3 + a] = (float)gw[a];
+    }
   });
   return out;
 }
