@@ -98,8 +98,15 @@ class OptimizerConfig:
     image_loss: str = "smape"  # "smape" | "l1"
     projection_weight: float = 0.02
     repulsion_weight: float = 0.05
-    regularizer_weighting: str = "relative"  # "relative" | "absolute"
+    regularizer_weighting: str = "relative"  # "relative" | "absolute" | "per_point" (x N; see _regularizer_grads)
     projection_bandwidth: str | float = "default"  # "default" | "large" | a number
+    projection_mode: str = "paper"  # "paper" | "point_to_plane" (dss.regularizers.projection_loss)
+    # "free": points move along their full gradient; "normal": only its component along the point's
+    # current (optimised) normal; "pca": along the normal of the point's own weighted-PCA plane
+    # (the projection term's V_n). Both stop the tangential drift: the projection term pulls a
+    # point toward each neighbour's plane, and that pull has a tangential part wherever the
+    # neighbour's plane is tilted against the point's own.
+    point_motion: str = "free"
     repulsion_bandwidth: str | float = "default"
     reg_k: int = 16
     views: int = 12
@@ -122,10 +129,13 @@ class OptimizerConfig:
             raise ValueError(f"schedule must be 'alternating' or 'joint', got {self.schedule!r}")
         if self.optimizer not in ("sgd", "adam"):
             raise ValueError(f"optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
-        if self.regularizer_weighting not in ("relative", "absolute"):
-            raise ValueError(f"regularizer_weighting must be 'relative' or 'absolute', got {self.regularizer_weighting!r}")
+        if self.regularizer_weighting not in ("relative", "absolute", "per_point"):
+            raise ValueError("regularizer_weighting must be 'relative', 'absolute' or 'per_point', "
+                             f"got {self.regularizer_weighting!r}")
         if self.image_loss not in ("smape", "l1"):
             raise ValueError(f"image_loss must be 'smape' or 'l1', got {self.image_loss!r}")
+        if self.point_motion not in ("free", "normal", "pca"):
+            raise ValueError(f"point_motion must be 'free', 'normal' or 'pca', got {self.point_motion!r}")
         if self.normal_refresh not in ("none", "pca"):
             raise ValueError(f"normal_refresh must be 'none' or 'pca', got {self.normal_refresh!r}")
         if self.views <= 0:
@@ -206,7 +216,8 @@ class MultiViewOptimizer:
             radius = float((p - torch.tensor(center)).norm(dim=1).max())
         self.sampler = sampler or SphereViewSampler(tuple(center), radius, self.cfg.views, image_size,
                                                     self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed)
-        self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k)
+        self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k,
+                                   projection_mode=self.cfg.projection_mode)
         self.rep = RepulsionLoss(_bandwidth(self.cfg.repulsion_bandwidth, p), k=self.cfg.reg_k)
         self.proj.set_initial_shape(p)
         self.rep.set_initial_shape(p)
@@ -214,6 +225,7 @@ class MultiViewOptimizer:
         self._img_grad_scale: float | None = None
         self._reg_gamma: dict[int, float] = {}
         self._neighbors = None
+        self._pca_normals: torch.Tensor | None = None  # the projection term's PCA normals, last step
         self._sigma = None
         self.history: dict = {"step": [], "loss": [], "image_loss": [], "time": [], "kind": [], "lr_halvings": 0,
                               "config": asdict(self.cfg)}
@@ -243,7 +255,10 @@ class MultiViewOptimizer:
             if weight <= 0:
                 continue
             p = self.points.detach().requires_grad_(True)
-            (g,) = torch.autograd.grad(term(p, self.normals.detach(), occl, neighbors=self._neighbors), p)
+            frames = term.frames(p, self.normals.detach(), occl, self._neighbors)
+            if term is self.proj:
+                self._pca_normals = frames.normal.detach()
+            (g,) = torch.autograd.grad(term(p, frames=frames), p)
             g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
             if c.regularizer_weighting == "relative":
                 # gamma calibrated once, at the first step, so that the term's mean per-point
@@ -257,7 +272,15 @@ class MultiViewOptimizer:
                     ref, mag = self._img_grad_scale, float(g.double().norm(dim=1).mean())
                     if ref is not None and mag > 0:
                         gamma = self._reg_gamma[id(term)] = weight * ref / mag
+                        name = "projection" if term is self.proj else "repulsion"
+                        self.history.setdefault("reg_gamma", {})[name] = gamma
+                        log.info("%s term: gamma %.4g (mean per-point gradient: image %.4g, term %.4g)",
+                                 name, gamma, ref, mag)
                 g = g * gamma if gamma is not None else torch.zeros_like(g)
+            elif c.regularizer_weighting == "per_point":
+                # the terms are means over the N points: x N gives each point the gradient of its
+                # own summand, so a weight means the same for any N and any reference
+                g = (weight * self.points.shape[0]) * g
             else:
                 g = weight * g
             total = g if total is None else total + g
@@ -306,6 +329,10 @@ class MultiViewOptimizer:
         # Points move in every step: by image + regulariser gradients in point steps, by the
         # regulariser alone in normal steps (paper "Alternating normal and point update").
         g = g_img if g_reg is None else (g_reg if g_img is None else g_img + g_reg)
+        if g is not None and self.cfg.point_motion != "free":
+            n = self._pca_normals if (self.cfg.point_motion == "pca" and self._pca_normals is not None) else self.normals
+            n = torch.nn.functional.normalize(n.detach(), dim=1)
+            g = (g * n).sum(1, keepdim=True) * n
         self.points.grad = g
         if g is not None:
             if self.cfg.clip_point_grad:

@@ -62,6 +62,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL = "paper"
 METRIC_KEYS = ("chamfer", "hausdorff", "p2m")
 METRIC_NAMES = {"chamfer": "CD", "hausdorff": "HD", "p2m": "P2M"}
+# the two one-sided halves of CD: accuracy (output -> clean) and coverage (clean -> output)
+HALF_KEYS = ("chamfer_pred_to_gt", "chamfer_gt_to_pred")
 #: statuses whose record still carries metrics (the output exists and is finite)
 SCORED = ("ok", "worse_than_input", "reference")
 #: fixed arguments of every DSS run: its own metrics and floor are not needed (scored here)
@@ -433,10 +435,10 @@ def summarize(records: list[dict], methods: list[str], cases: list[str]) -> list
             r = recs.get(c, {"status": "missing", "message": "no record"})
             m = r.get("metrics") or {}
             cells[c] = {"status": r["status"], "message": r.get("message", ""), "time_s": r.get("time_s"),
-                        **{k: m.get(k) for k in METRIC_KEYS}}
+                        **{k: m.get(k) for k in METRIC_KEYS + HALF_KEYS}}
         scored = [c for c in cases if cells[c]["chamfer"] is not None]
         rows.append({"method": label, "kind": next(iter(recs.values())).get("kind"), "cases": cells,
-                     "mean": {k: _mean([cells[c][k] for c in scored]) for k in METRIC_KEYS},
+                     "mean": {k: _mean([cells[c][k] for c in scored]) for k in METRIC_KEYS + HALF_KEYS},
                      "n_scored": len(scored), "complete": bool(cases) and len(scored) == len(cases),
                      "time_s": _mean([cells[c]["time_s"] for c in scored]),
                      "statuses": sorted({cells[c]["status"] for c in cases})})
@@ -499,7 +501,16 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
         lines.append("| " + " | ".join(out) + " |")
     lines += ["", "† worse than the noisy input (Chamfer). Means over cases: `(k/n)` when only k of the n "
               "cases have a result (not ranked). time: mean method wall time over the scored cases.", "",
-              "## Cases", "", "| case | source | points | noise | measured noise | status |", "|---|---|---|---|---|---|"]
+              "## Accuracy and coverage", "",
+              "CD = accuracy + coverage: the mean squared distance from each output point to the clean cloud, "
+              "and from each clean point to the output (x1e4). A method that moves points sideways into "
+              "clumps keeps its accuracy but loses coverage.", "",
+              "| method | mean accuracy (output -> clean) | mean coverage (clean -> output) |", "|---|---|---|"]
+    for r in rows:
+        if r["complete"] or r["kind"] in ("input", "floor"):
+            lines.append(f"| {labels.get(r['method'], r['method'])} | {_fmt(r['mean'].get(HALF_KEYS[0]))} | "
+                         f"{_fmt(r['mean'].get(HALF_KEYS[1]))} |")
+    lines += ["", "## Cases", "", "| case | source | points | noise | measured noise | status |", "|---|---|---|---|---|---|"]
     for c in case_info:
         src = c.get("source") or c.get("key", {}).get("case", {})
         src_s = src.get("mesh") or f"{src.get('family')} #{src.get('index')} (shape seed {src.get('shape_seed')})"

@@ -84,32 +84,90 @@ def test_repulsion_keeps_a_2d_grid_spread(cpp_backend):
     assert with_rep["cv"] < without["cv"], (with_rep, without)
 
 
-def test_projection_flattens_a_noisy_plane_during_normal_steps():
-    g = torch.Generator().manual_seed(0)
+class _FixedView:
+    """A view sampler that always returns the same cameras."""
+
+    def __init__(self, cams):
+        self.cams = cams
+
+    def sample(self):
+        return self.cams
+
+
+def _noisy_plane(seed: int):
+    """1500 points on z = 0 with 0.01 normal noise, +z normals, one camera above, and a
+    reference that is the current render (the image term asks for nothing, so the regulariser
+    acts alone)."""
+    g = torch.Generator().manual_seed(seed)
     xy = (torch.rand(1500, 2, generator=g) - 0.5) * 0.8
-    z = 0.01 * torch.randn(1500, generator=g)
-    pts = torch.cat([xy, z[:, None]], 1)
+    pts = torch.cat([xy, 0.01 * torch.randn(1500, 1, generator=g)], 1)
     nrm = torch.tensor([0.0, 0.0, 1.0]).expand(1500, 3).clone()
     st = RenderSettings()
     cams = look_at(torch.tensor([[0.0, 0.0, 2.0]]), (0, 0, 0), (0, 1, 0), 100.0, (32, 32))
 
-    class Fixed:
-        def sample(self):
-            return cams
-
-    def ref(c):  # the current render: the image term asks for nothing, the regulariser acts alone
+    def ref(c):
         return render(pts, nrm, c, st, shading=SUN).images
 
+    return pts, nrm, st, _FixedView(cams), ref
+
+
+def test_projection_flattens_a_noisy_plane_during_normal_steps():
+    pts, nrm, st, sampler, ref = _noisy_plane(0)
     res = {}
     for w in (0.0, 300.0):  # absolute weights: L_p is tiny in these units (see regularizers)
         cfg = OptimizerConfig(cycles=1, normal_steps=10, point_steps=0, lr_normals=0.0, momentum=0.0, views=1,
                               projection_weight=w, repulsion_weight=0.0, regularizer_weighting="absolute",
                               lr_points=2.0, lr_scale=1.0, clip_point_grad=None)
-        opt = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=Fixed(), shading=SUN, image_size=32)
+        opt = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32)
         res[w] = opt.run().points[:, 2].abs().mean().item()
     assert res[0.0] == pytest.approx(pts[:, 2].abs().mean().item())  # nothing moves without it
     assert res[300.0] < 0.5 * res[0.0]
 
+
+
+def test_point_motion_along_normals_stops_tangential_drift():
+    """point_motion="normal" moves each point only along its own normal (here +z, fixed); "free"
+    also slides points sideways (the projection term pulls a point toward each tilted neighbour
+    plane). "pca" moves along the weighted-PCA normal, which on this plane (noise half the point
+    spacing) is itself tilted, so it slides too. All three flatten the plane."""
+    pts, nrm, st, sampler, ref = _noisy_plane(1)
+    xy = pts[:, :2]
+    slide, flat = {}, {}
+    for motion in ("free", "normal", "pca"):
+        cfg = OptimizerConfig(cycles=1, normal_steps=10, point_steps=0, lr_normals=0.0, momentum=0.0, views=1,
+                              projection_weight=300.0, repulsion_weight=0.0, regularizer_weighting="absolute",
+                              lr_points=2.0, lr_scale=1.0, clip_point_grad=None, point_motion=motion)
+        out = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32).run().points
+        slide[motion] = (out[:, :2] - xy).norm(dim=1).mean().item()
+        flat[motion] = out[:, 2].abs().mean().item()
+    assert slide["normal"] == 0.0
+    assert slide["free"] > 1e-4 and slide["pca"] > 1e-4
+    for motion in slide:
+        assert flat[motion] < 0.5 * pts[:, 2].abs().mean().item()
+    with pytest.raises(ValueError, match="point_motion"):
+        OptimizerConfig(point_motion="sideways")
+
+
+def test_per_point_weighting_does_not_depend_on_the_reference():
+    """With "relative" weighting the projection strength is calibrated against the first image
+    gradient, so a different reference changes how far the regulariser moves the points even when
+    the images move nothing (here lr_normals 0, no point steps). "per_point" weighting does not."""
+    pts, nrm, st, sampler, ref_same = _noisy_plane(2)
+
+    def ref_black(c):
+        return torch.zeros_like(ref_same(c))
+
+    moved = {}
+    for weighting, w in (("relative", 1.0), ("per_point", 0.5)):
+        for name, ref in (("same", ref_same), ("black", ref_black)):
+            cfg = OptimizerConfig(cycles=1, normal_steps=5, point_steps=0, lr_normals=0.0, views=1,
+                                  projection_weight=w, repulsion_weight=0.0, regularizer_weighting=weighting,
+                                  lr_points=2.0, lr_scale=1.0, clip_point_grad=None)
+            out = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32).run()
+            moved[weighting, name] = out.points
+    assert torch.equal(moved["per_point", "same"], moved["per_point", "black"])
+    assert (moved["per_point", "same"] - pts).abs().max() > 1e-4
+    assert not torch.allclose(moved["relative", "same"], moved["relative", "black"])
 
 def test_window_schedule_shrinks():
     cfg = OptimizerConfig(window_start=32, window_end=4, window_decay=0.5, window_samples=8)
