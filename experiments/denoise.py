@@ -125,19 +125,24 @@ def score(pred: np.ndarray, clean: np.ndarray | None, mesh, protocols) -> dict:
     return {pr: evaluate(pred, clean, mesh, pr).to_dict() for pr in protocols}
 
 
-def resolve_cycles(cfg: DictConfig, noise: float) -> dict:
-    """Set ``cfg.optimizer.cycles`` when it is ``auto``: the ``cycles_by_noise`` entry nearest (in
+def resolve_by_noise(cfg: DictConfig, noise: float, key: str, cast=float) -> dict:
+    """Set ``cfg.optimizer.<key>`` when it is ``auto``: the ``<key>_by_noise`` entry nearest (in
     log scale) to the noise level in use. Returns what was chosen and why (for metrics.json)."""
-    setting = cfg.optimizer.cycles
+    setting = cfg.optimizer[key]
     if str(setting) != "auto":
-        return {"setting": int(setting), "used": int(setting)}
-    table = {float(k): int(v) for k, v in (cfg.get("cycles_by_noise") or {}).items()}
+        return {"setting": cast(setting), "used": cast(setting)}
+    name = f"{key}_by_noise"
+    table = {float(k): cast(v) for k, v in (cfg.get(name) or {}).items()}
     if not table:
-        raise ValueError("optimizer.cycles=auto needs cycles_by_noise ({noise level: cycles})")
+        raise ValueError(f"optimizer.{key}=auto needs {name} ({{noise level: value}})")
     level = min(table, key=lambda lv: abs(np.log(lv) - np.log(noise)))
-    cfg.optimizer.cycles = table[level]
-    return {"setting": "auto", "used": table[level], "noise": noise, "nearest_level": level,
-            "cycles_by_noise": table}
+    cfg.optimizer[key] = table[level]
+    return {"setting": "auto", "used": table[level], "noise": noise, "nearest_level": level, name: table}
+
+
+def resolve_cycles(cfg: DictConfig, noise: float) -> dict:
+    """:func:`resolve_by_noise` for ``optimizer.cycles`` (``cycles_by_noise``)."""
+    return resolve_by_noise(cfg, noise, "cycles", int)
 
 
 def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: int = 16) -> torch.Tensor:
@@ -393,6 +398,7 @@ def run(cfg: DictConfig) -> dict:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
     cycles_note = resolve_cycles(cfg, noise)
+    projection_note = resolve_by_noise(cfg, noise, "projection_weight", float)
     base_spec = None
     if cfg.get("image_size"):
         from data_prep.render_spec import load_render_spec
@@ -449,6 +455,7 @@ def run(cfg: DictConfig) -> dict:
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
         "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
         "cycles": cycles_note,
+        "projection_weight": projection_note,
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},

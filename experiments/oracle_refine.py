@@ -36,13 +36,18 @@ def _value(text: str):
     return text
 
 
-def denoise_optimizer_defaults() -> dict:
-    """The optimiser block of conf/denoise.yaml (dss-denoise's settings), so that the oracle run
-    differs from the main job only in its references."""
+def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
+    """The optimiser block of conf/denoise.yaml (dss-denoise's settings, ``auto`` entries resolved
+    for ``noise`` as dss-denoise does), so that the oracle run differs from the main job only in
+    its references."""
     from omegaconf import OmegaConf
 
-    conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
-    return dict(OmegaConf.to_container(OmegaConf.load(conf).optimizer, resolve=True))
+    from experiments.denoise import resolve_by_noise
+
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml")
+    for key, cast in (("cycles", int), ("projection_weight", float)):
+        resolve_by_noise(cfg, noise, key, cast)
+    return dict(OmegaConf.to_container(cfg.optimizer, resolve=True))
 
 
 def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: int = 16, image_size: int = 128,

@@ -348,3 +348,18 @@ def test_auto_cycles_follow_the_noise_level():
     assert resolve_cycles(fixed, 0.003) == {"setting": 5, "used": 5}
     with pytest.raises(ValueError, match="cycles_by_noise"):
         resolve_cycles(OmegaConf.create({"optimizer": {"cycles": "auto"}}), 0.01)
+
+
+def test_auto_projection_weight_follows_the_noise_level():
+    from omegaconf import OmegaConf
+
+    from experiments.denoise import resolve_by_noise
+
+    cfg = OmegaConf.create({"optimizer": {"projection_weight": "auto"},
+                            "projection_weight_by_noise": {0.01: 0.1, 0.02: 0.5}})
+    note = resolve_by_noise(cfg, 0.025, "projection_weight")
+    assert note["used"] == 0.5 and note["nearest_level"] == 0.02 and cfg.optimizer.projection_weight == 0.5
+    fixed = OmegaConf.create({"optimizer": {"projection_weight": 0.3}})
+    assert resolve_by_noise(fixed, 0.02, "projection_weight") == {"setting": 0.3, "used": 0.3}
+    with pytest.raises(ValueError, match="projection_weight_by_noise"):
+        resolve_by_noise(OmegaConf.create({"optimizer": {"projection_weight": "auto"}}), 0.01, "projection_weight")
