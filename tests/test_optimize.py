@@ -169,6 +169,30 @@ def test_per_point_weighting_does_not_depend_on_the_reference():
     assert (moved["per_point", "same"] - pts).abs().max() > 1e-4
     assert not torch.allclose(moved["relative", "same"], moved["relative", "black"])
 
+
+def test_every_step_calibration_keeps_the_regulariser_step_size():
+    """regularizer_calibration="every_step" re-normalises the relative regulariser every step
+    (dss-deform), "once" fixes gamma at the first step (dss-denoise): as the plane flattens, the
+    once-calibrated steps shrink with the residual, the re-normalised ones do not."""
+    pts, nrm, st, sampler, _ = _noisy_plane(3)
+
+    def ref_shifted(c):  # a real image gradient on the points (it sets the relative scale)
+        return render(pts + torch.tensor([0.1, 0.0, 0.0]), nrm, c, st, shading=SUN).images
+
+    last_step = {}
+    for cal in ("once", "every_step"):
+        cfg = OptimizerConfig(cycles=1, normal_steps=12, point_steps=0, lr_normals=0.0, momentum=0.0, views=1,
+                              projection_weight=1e5, repulsion_weight=0.0, regularizer_calibration=cal,
+                              lr_points=2.0, lr_scale=1.0, clip_point_grad=None)
+        trail = []
+        opt = MultiViewOptimizer(pts, nrm, ref_shifted, cfg, st, sampler=sampler, shading=SUN, image_size=32,
+                                 callback=lambda step, state: trail.append(state["points"].clone()))
+        opt.run()
+        last_step[cal] = (trail[-1] - trail[-2]).norm(dim=1).mean().item()
+    assert last_step["every_step"] > 1.5 * last_step["once"] > 0
+    with pytest.raises(ValueError, match="regularizer_calibration"):
+        OptimizerConfig(regularizer_calibration="sometimes")
+
 def test_window_schedule_shrinks():
     cfg = OptimizerConfig(window_start=32, window_end=4, window_decay=0.5, window_samples=8)
     ws = [window_for_cycle(cfg, c) for c in range(6)]
