@@ -159,6 +159,10 @@ class RegularizerConfig:
         projection_mode: ``"paper"`` or ``"point_to_plane"`` (see module docstring).
         covariance_weight: ``"squared"`` (paper: SVD of w-weighted vectors) or ``"linear"``.
         knn_backend: ``"auto"``, ``"scipy"`` or ``"torch"`` (see :mod:`dss.knn`).
+        cutoff: neighbourhood radius as a multiple of ``D`` (paper: 1, neighbours within ``D``;
+            ``inf``: all ``k`` nearest, weighted by psi). With 1, a point farther than ``D``
+            from all its neighbours (a noise tail point, an outlier) has no neighbourhood and
+            is never moved by the term.
     """
 
     k: int = DEFAULT_K
@@ -169,8 +173,11 @@ class RegularizerConfig:
     projection_mode: str = "paper"
     covariance_weight: str = "squared"
     knn_backend: str = "auto"
+    cutoff: float = 1.0
 
     def __post_init__(self):
+        if not self.cutoff > 0:
+            raise ValueError(f"cutoff must be positive (a multiple of the bandwidth), got {self.cutoff}")
         if int(self.k) != self.k or self.k < 1:
             raise ValueError(f"k must be a positive integer, got {self.k}")
         if self.bandwidth is not None and not (
@@ -275,6 +282,7 @@ def local_frames(
     covariance_weight: str = "squared",
     neighbors: Neighbors | None = None,
     backend: str = "auto",
+    cutoff: float = 1.0,
 ) -> LocalFrames:
     """Weighted PCA of every point's neighbourhood (see module docstring).
 
@@ -288,6 +296,7 @@ def local_frames(
         covariance_weight: ``"squared"`` (paper) or ``"linear"``.
         neighbors: precomputed :func:`find_neighbors` result (self excluded), or None.
         backend: kNN backend when searching.
+        cutoff: neighbours farther than ``cutoff * D`` are masked out (paper: 1).
 
     Neighbourhoods with fewer than 3 valid neighbours have no well-defined plane; for those the
     frame is built from the given normal ``n_i`` when it is non-zero (else the PCA result, which
@@ -315,7 +324,7 @@ def local_frames(
         )
     with torch.no_grad():
         dist2 = (diff.detach() ** 2).sum(-1)
-        valid = (idx >= 0) & (dist2 <= bandwidth * bandwidth)
+        valid = (idx >= 0) & (dist2 <= (cutoff * bandwidth) ** 2)
         validf = valid.to(points.dtype)
     # Masked neighbours contribute nothing (and no gradient); outside no_grad to keep the graph.
     diff = diff * validf.unsqueeze(-1)
@@ -482,6 +491,7 @@ class _SurfaceRegularizer(torch.nn.Module):
             covariance_weight=self.config.covariance_weight,
             neighbors=neighbors,
             backend=self.config.knn_backend,
+            cutoff=self.config.cutoff,
         )
 
     def extra_repr(self) -> str:

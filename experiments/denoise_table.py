@@ -150,8 +150,12 @@ def _level_index(noise: float, levels) -> int:
     return 1000 + int(round(noise * 1e6))
 
 
-def _make_case_arrays(case: dict, points: int, noise: float, seed: int):
-    """(mesh, clean Cloud (points, mesh normals), noisy (N, 3) float32, provenance dict)."""
+def _make_case_arrays(case: dict, points: int, noise: float, seed: int, outliers: float = 0.0):
+    """(mesh, clean Cloud (points, mesh normals), noisy (N, 3) float32, provenance dict).
+
+    Generated shapes use dss-prep's seeds at ``seed`` 0 (the shipped example is reproduced); any
+    other ``seed`` gives another sampling and noise draw of the same shape. ``outliers``: a
+    fraction of ``points`` added to the noisy cloud, uniform in the clean cloud's bounding box."""
     from data_prep.sampling import measured_noise_std, noisy_copy, poisson_disk
     from data_prep.shapes import make_shape
     from data_prep.shapes.meshing import Mesh
@@ -163,6 +167,9 @@ def _make_case_arrays(case: dict, points: int, noise: float, seed: int):
         mesh = make_shape(case["family"], s, int(case.get("resolution", 96)))
         src = {"family": case["family"], "index": int(case.get("index", 0)), "shape_seed": s,
                "resolution": int(case.get("resolution", 96))}
+        if int(seed):
+            s = _seed_mix(s, int(seed))
+            src["sample_seed"] = s
     else:
         from dss.metrics import load_mesh
 
@@ -174,10 +181,23 @@ def _make_case_arrays(case: dict, points: int, noise: float, seed: int):
     noisy = noisy_copy(clean.points, noise, ns)
     src.update(noise_seed=ns, vertices=len(mesh.vertices), faces=len(mesh.faces),
                measured_noise=round(measured_noise_std(clean.points, noisy), 6))
+    if outliers > 0:
+        n_out = int(round(outliers * points))
+        rng = np.random.default_rng(_seed_mix(ns, 2))
+        lo, hi = clean.points.min(0), clean.points.max(0)
+        extra = rng.uniform(lo, hi, size=(n_out, 3)).astype(noisy.dtype)
+        noisy = np.concatenate([noisy, extra])[rng.permutation(len(noisy) + n_out)]
+        src.update(outliers=n_out, outlier_fraction=float(outliers))
     return mesh, clean, noisy, src
 
 
-def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, overwrite: bool = False) -> dict:
+def _seed_mix(a: int, b: int) -> int:
+    """A 32-bit seed from two (stable across runs and platforms, unlike ``hash``)."""
+    return int(np.random.SeedSequence([int(a), int(b)]).generate_state(1)[0])
+
+
+def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, overwrite: bool = False,
+                 outliers: float = 0.0) -> dict:
     """Make (or reuse) ``root/{noisy,clean,mesh}.ply`` and ``root/case.json``; returns case.json.
 
     A missing mesh file returns ``{"status": "skipped", "reason": ...}`` (nothing written). An
@@ -191,6 +211,8 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
 
     key = {"case": {k: v for k, v in case.items() if k != "name"}, "points": int(points), "noise": float(noise),
            "seed": int(seed)}
+    if outliers:  # only when used, so the cases of tables made before the option stay valid
+        key["outliers"] = float(outliers)
     if "mesh" in case:
         path = resolve_repo_path(case["mesh"])
         if not path.is_file():
@@ -209,7 +231,7 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
     prev = torch.get_num_threads()
     torch.set_num_threads(1)  # open3d's sample elimination and the noise are then reproducible
     try:
-        mesh, clean, noisy, src = _make_case_arrays(case, int(points), float(noise), int(seed))
+        mesh, clean, noisy, src = _make_case_arrays(case, int(points), float(noise), int(seed), float(outliers))
     finally:
         torch.set_num_threads(prev)
     root.mkdir(parents=True, exist_ok=True)
@@ -374,6 +396,8 @@ def _request(label: str, cfg: DictConfig, noise: float) -> dict:
     dss = dict(cfg.dss_methods or {})
     if label in dss:
         ovr = [*_plain(dss[label]), *_plain(cfg.get("dss_overrides"))]
+        if int(cfg.get("seed", 0)):  # another draw of the cases: DSS's own random views follow it
+            ovr.append(f"seed={int(cfg.seed)}")
         # threads=null gives "...=None", which Hydra would read as a string
         return {"kind": "dss", "overrides": [re.sub(r"=None$", "=null", str(o)) for o in ovr]}
     spec = str((cfg.custom_methods or {}).get(label, label))
@@ -605,8 +629,11 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
 
     t0 = time.perf_counter()
     noise, points, seed = float(cfg.noise), int(cfg.points), int(cfg.seed)
+    outliers = float(cfg.get("outliers", 0.0) or 0.0)
     if not (noise > 0 and math.isfinite(noise)):
         raise ValueError(f"noise must be a positive fraction of the bbox diagonal, got {cfg.noise}")
+    if not (0.0 <= outliers <= 1.0):
+        raise ValueError(f"outliers must be a fraction of points in [0, 1], got {cfg.outliers}")
     if points < 32:
         raise ValueError(f"points must be >= 32, got {points}")
     methods = method_list(cfg)
@@ -624,7 +651,7 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         name = case["name"]
         cdir, rdir = out / "cases" / _safe(name), out / "records" / _safe(name)
         bar.set_description(f"{name}: preparing")
-        meta = prepare_case(case, cdir, points, noise, seed, overwrite)
+        meta = prepare_case(case, cdir, points, noise, seed, overwrite, outliers)
         case_info.append(meta)
         if meta["status"] == "skipped":
             log.warning("case %s skipped: %s", name, meta["reason"])
@@ -667,7 +694,8 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
 
     ready = [c["name"] for c in case_info if c["status"] != "skipped"]
     rows = summarize(records, methods, ready)
-    title = f"Point cloud denoising: {points} points, noise {noise:g} x bbox diagonal"
+    title = f"Point cloud denoising: {points} points, noise {noise:g} x bbox diagonal" + (
+        f", {outliers:.3g} x {points} uniform outliers" if outliers else "") + (f", seed {seed}" if seed else "")
     notes = [f"`{PROTOCOL}` protocol (dss/metrics.py): clean cloud centred, bbox diagonal 1; CD x1e4, HD x1e3 "
              "(symmetric, not squared), P2M x1e4 (two-sided, PyTorch3D's point_mesh_face_distance, exact "
              "triangle distances); lower is better",
@@ -683,6 +711,7 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         files["chart"] = "accuracy_vs_time.png"
     elapsed = time.perf_counter() - t0
     result = {"title": title, "protocol": PROTOCOL, "points": points, "noise": noise, "seed": seed,
+              "outliers": outliers,
               "methods": methods, "cases": case_info, "rows": rows, "records": records, "versions": _versions(),
               "config": OmegaConf.to_container(cfg, resolve=True), "time_s": elapsed, "files": files,
               "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}

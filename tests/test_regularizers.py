@@ -179,6 +179,26 @@ def test_large_projection_bandwidth_pulls_far_outlier():
     assert g[2] > 0 and g[2].abs() > 10 * g[:2].abs().max()  # descent moves it down to z=0
 
 
+def test_cutoff_lets_an_isolated_point_use_its_nearest_neighbours():
+    """With the paper's cutoff (1 x D) a point farther than D from every neighbour is never
+    moved; cutoff 3 takes its k nearest within 3D, weighted by psi with the same D."""
+    P = torch.cat([_grid(12), torch.tensor([[0.0, 0.0, 4 * S]])])
+    D = 2.5 * S
+    p = P.clone().requires_grad_(True)
+    ProjectionLoss(bandwidth=D)(p).backward()
+    assert p.grad[-1].norm() == 0
+    p.grad = None
+    ProjectionLoss(bandwidth=D, cutoff=3.0)(p).backward()
+    g = p.grad[-1]
+    assert g[2] > 0 and g[2].abs() > 10 * g[:2].abs().max()
+    # the grid points themselves (neighbours within D) get the same frames either way
+    f1 = local_frames(P, bandwidth=D, cutoff=1.0)
+    f3 = local_frames(P, bandwidth=D, cutoff=3.0)
+    assert (f3.valid.sum(1) >= f1.valid.sum(1)).all() and f3.valid[-1].any() and not f1.valid[-1].any()
+    with pytest.raises(ValueError, match="cutoff"):
+        RegularizerConfig(cutoff=0.0)
+
+
 @pytest.mark.parametrize(
     "case", ["duplicates", "all_identical", "zero_normals", "n_below_k", "single", "collinear"]
 )
