@@ -140,9 +140,13 @@ def resolve_by_noise(cfg: DictConfig, noise: float, key: str, cast=float) -> dic
     return {"setting": "auto", "used": table[level], "noise": noise, "nearest_level": level, name: table}
 
 
-def resolve_cycles(cfg: DictConfig, noise: float) -> dict:
-    """:func:`resolve_by_noise` for ``optimizer.cycles`` (``cycles_by_noise``)."""
-    return resolve_by_noise(cfg, noise, "cycles", int)
+#: optimiser settings that may be ``auto`` (taken from ``<key>_by_noise`` in conf/denoise.yaml)
+BY_NOISE = (("cycles", int), ("projection_weight", float), ("reg_cutoff", float))
+
+
+def resolve_all_by_noise(cfg: DictConfig, noise: float) -> dict:
+    """:func:`resolve_by_noise` for every :data:`BY_NOISE` key; ``{key: note}``."""
+    return {key: resolve_by_noise(cfg, noise, key, cast) for key, cast in BY_NOISE}
 
 
 def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: int = 16) -> torch.Tensor:
@@ -397,8 +401,7 @@ def run(cfg: DictConfig) -> dict:
     if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
-    cycles_note = resolve_cycles(cfg, noise)
-    projection_note = resolve_by_noise(cfg, noise, "projection_weight", float)
+    by_noise = resolve_all_by_noise(cfg, noise)
     base_spec = None
     if cfg.get("image_size"):
         from data_prep.render_spec import load_render_spec
@@ -454,8 +457,7 @@ def run(cfg: DictConfig) -> dict:
         "output": str(output),
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
         "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
-        "cycles": cycles_note,
-        "projection_weight": projection_note,
+        **by_noise,  # cycles, projection_weight, reg_cutoff: the value used and why
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},

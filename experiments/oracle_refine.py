@@ -42,11 +42,10 @@ def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
     its references."""
     from omegaconf import OmegaConf
 
-    from experiments.denoise import resolve_by_noise
+    from experiments.denoise import resolve_all_by_noise
 
     cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml")
-    for key, cast in (("cycles", int), ("projection_weight", float)):
-        resolve_by_noise(cfg, noise, key, cast)
+    resolve_all_by_noise(cfg, noise)
     return dict(OmegaConf.to_container(cfg.optimizer, resolve=True))
 
 

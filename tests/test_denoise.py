@@ -337,7 +337,10 @@ def test_output_normals_pca_takes_signs_from_the_optimised_ones():
 def test_auto_cycles_follow_the_noise_level():
     from omegaconf import OmegaConf
 
-    from experiments.denoise import resolve_cycles
+    from experiments.denoise import resolve_by_noise
+
+    def resolve_cycles(c, noise):
+        return resolve_by_noise(c, noise, "cycles", int)
 
     cfg = OmegaConf.create({"optimizer": {"cycles": "auto"}, "cycles_by_noise": {0.003: 2, 0.01: 16}})
     assert resolve_cycles(cfg, 0.0042)["used"] == 2 and cfg.optimizer.cycles == 2
@@ -363,3 +366,18 @@ def test_auto_projection_weight_follows_the_noise_level():
     assert resolve_by_noise(fixed, 0.02, "projection_weight") == {"setting": 0.3, "used": 0.3}
     with pytest.raises(ValueError, match="projection_weight_by_noise"):
         resolve_by_noise(OmegaConf.create({"optimizer": {"projection_weight": "auto"}}), 0.01, "projection_weight")
+
+
+def test_shipped_config_resolves_every_auto_setting():
+    """conf/denoise.yaml: every ``auto`` optimiser entry has its table; 2% noise widens the
+    regularisers' neighbourhood (reg_cutoff 3), 1% keeps the paper's (1)."""
+    from omegaconf import OmegaConf
+
+    from experiments.denoise import BY_NOISE, resolve_all_by_noise
+
+    conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
+    for noise, cutoff in ((0.01, 1.0), (0.02, 3.0), (0.03, 3.0)):
+        cfg = OmegaConf.load(conf)
+        notes = resolve_all_by_noise(cfg, noise)
+        assert set(notes) == {k for k, _ in BY_NOISE}
+        assert cfg.optimizer.reg_cutoff == cutoff and notes["reg_cutoff"]["used"] == cutoff
