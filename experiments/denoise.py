@@ -149,6 +149,35 @@ def resolve_all_by_noise(cfg: DictConfig, noise: float) -> dict:
     return {key: resolve_by_noise(cfg, noise, key, cast) for key, cast in BY_NOISE}
 
 
+def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = None) -> dict:
+    """Apply the ``budget`` preset (``default`` | ``fast`` | ``auto``: ``fast`` for inputs of more
+    than ``budget_fast_above`` points): ``cfg.views`` when it is null, and the preset's
+    ``cycles_scale`` on cycles that came from ``cycles_by_noise`` (an explicit
+    ``optimizer.cycles`` is kept). Returns what was chosen and why (for metrics.json)."""
+    setting = str(cfg.get("budget", "default"))
+    presets = cfg.get("budgets") or {}
+    if setting == "auto":
+        limit = int(cfg.get("budget_fast_above", 0) or 0)
+        name = "fast" if limit and n_points > limit else "default"
+        reason = f"{n_points} points {'>' if name == 'fast' else '<='} budget_fast_above {limit}"
+    else:
+        name, reason = setting, "given"
+    if name not in presets:
+        raise ValueError(f"budget={setting!r}: no preset {name!r} in budgets (have {sorted(presets)})")
+    preset = presets[name]
+    note = {"setting": setting, "used": name, "reason": reason}
+    if cfg.get("views") is None:
+        cfg.views = int(preset.views)
+        note["views"] = int(preset.views)
+    else:
+        note["views"] = f"{int(cfg.views)} (given)"
+    scale = float(preset.get("cycles_scale", 1.0))
+    if scale != 1.0 and cycles_note is not None and cycles_note.get("setting") == "auto":
+        cfg.optimizer.cycles = max(1, int(round(int(cfg.optimizer.cycles) * scale)))
+        note["cycles"] = f"{cycles_note['used']} x {scale:g} -> {cfg.optimizer.cycles}"
+    return note
+
+
 def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: int = 16) -> torch.Tensor:
     """Normals written with the denoised cloud: ``"optimized"`` (DSS's own normals) or ``"pca"``
     (a PCA fit on the denoised points, each flipped to agree with its optimised normal).
@@ -402,6 +431,7 @@ def run(cfg: DictConfig) -> dict:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
     by_noise = resolve_all_by_noise(cfg, noise)
+    budget_note = resolve_budget(cfg, len(cloud), by_noise["cycles"])
     base_spec = None
     if cfg.get("image_size"):
         from data_prep.render_spec import load_render_spec
@@ -458,6 +488,7 @@ def run(cfg: DictConfig) -> dict:
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
         "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
         **by_noise,  # cycles, projection_weight, reg_cutoff: the value used and why
+        "budget": budget_note,
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},

@@ -38,7 +38,7 @@ def _value(text: str):
 
 def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
     """The optimiser block of conf/denoise.yaml (dss-denoise's settings, ``auto`` entries resolved
-    for ``noise`` as dss-denoise does), so that the oracle run differs from the main job only in
+    for ``noise`` as dss-denoise does, views from its default budget), so that the oracle run differs from the main job only in
     its references."""
     from omegaconf import OmegaConf
 
@@ -46,7 +46,8 @@ def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
 
     cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml")
     resolve_all_by_noise(cfg, noise)
-    return dict(OmegaConf.to_container(cfg.optimizer, resolve=True))
+    # the views of dss-denoise's default budget (an explicit views= there is not seen here)
+    return {**OmegaConf.to_container(cfg.optimizer, resolve=True), "views": int(cfg.budgets.default.views)}
 
 
 def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: int = 16, image_size: int = 128,

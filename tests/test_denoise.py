@@ -381,3 +381,28 @@ def test_shipped_config_resolves_every_auto_setting():
         notes = resolve_all_by_noise(cfg, noise)
         assert set(notes) == {k for k, _ in BY_NOISE}
         assert cfg.optimizer.reg_cutoff == cutoff and notes["reg_cutoff"]["used"] == cutoff
+
+
+def test_budget_presets_set_views_and_scale_auto_cycles():
+    from omegaconf import OmegaConf
+
+    from experiments.denoise import resolve_budget
+
+    def cfg(**kw):
+        return OmegaConf.create({"views": None, "budget": "auto", "budget_fast_above": 1000,
+                                 "budgets": {"default": {"views": 12, "cycles_scale": 1.0},
+                                             "fast": {"views": 4, "cycles_scale": 0.5}},
+                                 "optimizer": {"cycles": 16}, **kw})
+
+    auto = {"setting": "auto", "used": 16}
+    c = cfg()
+    note = resolve_budget(c, 1000, auto)
+    assert note["used"] == "default" and c.views == 12 and c.optimizer.cycles == 16
+    c = cfg()
+    note = resolve_budget(c, 1001, auto)
+    assert note["used"] == "fast" and c.views == 4 and c.optimizer.cycles == 8
+    c = cfg(views=6)  # explicit views and cycles win over the preset
+    note = resolve_budget(c, 5000, {"setting": 16, "used": 16})
+    assert c.views == 6 and c.optimizer.cycles == 16 and note["views"] == "6 (given)"
+    with pytest.raises(ValueError, match="no preset 'huge'"):
+        resolve_budget(cfg(budget="huge"), 10, auto)
