@@ -99,7 +99,9 @@ def axis_points(study: DictConfig, names: list[str], base: DictConfig) -> list[d
             overrides = list(table.get("dss_overrides") or [])
             for k, v in settings.items():
                 if k.startswith(DSS_PREFIX):
-                    if v != "default" and not (k == key and ax.get("default") is not None and v == ax.default):
+                    # dss-denoise's own default (declared or unknown) is not passed: the same
+                    # effective settings must give the same request, so records are shared
+                    if v != "default" and v != defaults[k]:
                         overrides.append(f"{k[len(DSS_PREFIX):]}={v}")
                 else:
                     table[k] = v
@@ -226,6 +228,11 @@ def plot_axis(ax_res: dict, path: Path, title: str) -> Path:
         for a, key in zip(axs, ("ratio", "failure_rate", "time_s")):
             ys = [s.get(key) if s.get(key) is not None else np.nan for s in st]
             a.plot(xs, ys, **style)
+        kv = ax_res["knee"].get(m)
+        if kv is not None:  # the knee: cheapest value within knee_tolerance of the best CD
+            k = values.index(kv)
+            axs[0].scatter([xs[k]], [st[k].get("ratio")], s=160, facecolors="none", edgecolors=style["color"],
+                           lw=1.6, zorder=4, label=f"{m} knee ({kv})")
     axs[0].axhline(1.0, color="k", lw=0.8)
     axs[0].set_ylabel("output CD / input CD (mean over cases)")
     axs[0].set_yscale("log")

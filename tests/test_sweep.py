@@ -143,6 +143,21 @@ def test_unknown_axis_and_key_are_refused(tmp_path, fakes):
         sw.run(cfg)
 
 
+def test_declared_dss_defaults_are_never_passed(fakes, tmp_path):
+    """A dss axis's declared default is dss-denoise's own: no point, on any axis, passes it, so the
+    base point shared by the axes keeps one request (and one set of records)."""
+    cfg = make_cfg(tmp_path / "o", fakes)
+    cfg.study.axes["cycles"] = {"key": "dss.optimizer.cycles", "values": [1, 2], "default": 1}
+    pts = sw.axis_points(cfg.study, list(cfg.study.axes), sw.base_table(cfg.study.table, cfg.table))
+    base = [p for p in pts if p["setting"] == next(q["setting"] for q in pts if q["axis"] == "views" and q["value"] == 2)]
+    assert {p["axis"] for p in base} == {"noise", "outliers", "views", "cycles"}
+    extra = [list(p["table"].dss_overrides)[-2:] for p in base]
+    assert all(not any(o.startswith(("views=", "optimizer.cycles=")) for o in e) for e in extra)
+    other = next(p for p in pts if p["axis"] == "cycles" and p["value"] == 2)
+    assert "optimizer.cycles=2" in other["table"].dss_overrides
+    assert not any(o.startswith("views=") for o in other["table"].dss_overrides)
+
+
 def test_knee_and_onset_helpers():
     st = [{"chamfer": 1.0, "failures": 0}, {"chamfer": 0.5, "failures": 0}, {"chamfer": 0.495, "failures": 1},
           {"chamfer": 0.49, "failures": 0}]
