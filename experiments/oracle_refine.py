@@ -15,12 +15,10 @@ JSON with the curve (``--out``).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
 
-import torch
 
 log = logging.getLogger("oracle-refine")
 
@@ -38,8 +36,8 @@ def _value(text: str):
 
 def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
     """The optimiser block of conf/denoise.yaml (dss-denoise's settings, ``auto`` entries resolved
-    for ``noise`` as dss-denoise does, views from its default budget), so that the oracle run differs from the main job only in
-    its references."""
+    for ``noise`` as dss-denoise does, views from its default budget), so that the oracle run
+    differs from the main job only in its references."""
     from omegaconf import OmegaConf
 
     from experiments.denoise import resolve_all_by_noise

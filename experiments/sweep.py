@@ -41,6 +41,8 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from experiments.denoise_table import _mean
+
 log = logging.getLogger(__name__)
 
 __all__ = ["run", "main", "axis_points", "aggregate_point", "knee", "first_failure"]
@@ -101,7 +103,7 @@ def axis_points(study: DictConfig, names: list[str], base: DictConfig) -> list[d
                 if k.startswith(DSS_PREFIX):
                     # dss-denoise's own default (declared or unknown) is not passed: the same
                     # effective settings must give the same request, so records are shared
-                    if v != "default" and v != defaults[k]:
+                    if v != defaults[k]:
                         overrides.append(f"{k[len(DSS_PREFIX):]}={v}")
                 else:
                     table[k] = v
@@ -125,20 +127,15 @@ def aggregate_point(records: list[dict], methods: list[str]) -> dict:
     for m in methods:
         recs = [r for r in records if r["method"] == m and r.get("status") != "skipped"]
         scored = [r for r in recs if (r.get("metrics") or {}).get("chamfer") is not None]
-
-        def mean(vals):
-            vals = [v for v in vals if v is not None and math.isfinite(v)]
-            return float(np.mean(vals)) if vals else None
-
         fails = [r for r in recs if r.get("failed")]
         out[m] = {"n": len(recs), "failures": len(fails),
                   "failure_rate": len(fails) / len(recs) if recs else None,
                   "statuses": {r["case"]: r["status"] for r in recs},
-                  **{k: mean([r["metrics"][k] for r in scored]) for k in ("chamfer", "hausdorff", "p2m")},
-                  "ratio": mean([r["metrics"]["chamfer"] / inputs[r["case"]] for r in scored
+                  **{k: _mean([r["metrics"][k] for r in scored]) for k in ("chamfer", "hausdorff", "p2m")},
+                  "ratio": _mean([r["metrics"]["chamfer"] / inputs[r["case"]] for r in scored
                                  if inputs.get(r["case"])]),
-                  "time_s": mean([r.get("time_s") for r in scored])}
-    out["input"] = {"n": len(inputs), "chamfer": mean([v for v in inputs.values()]) if inputs else None}
+                  "time_s": _mean([r.get("time_s") for r in scored])}
+    out["input"] = {"n": len(inputs), "chamfer": _mean(list(inputs.values()))}
     return out
 
 
