@@ -110,6 +110,8 @@ class OptimizerConfig:
     point_motion: str = "free"
     repulsion_bandwidth: str | float = "default"
     reg_k: int = 16
+    # every reg_dilation-th of the reg_k * reg_dilation nearest (dss.regularizers.find_neighbors)
+    reg_dilation: int = 1
     # neighbourhood radius of both regularisers' weighted PCA, a multiple of their bandwidth D
     # (paper: 1; dss.regularizers.RegularizerConfig.cutoff)
     reg_cutoff: float = 1.0
@@ -379,7 +381,7 @@ class MultiViewOptimizer:
         p = self.points.detach()
         if self.cfg.normal_refresh == "pca":
             self._refit_normals(p)
-        self._neighbors = find_neighbors(p, self.cfg.reg_k)
+        self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
         s = self.settings
         self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
 

@@ -232,14 +232,25 @@ class LocalFrames:
     bandwidth: float
 
 
-def find_neighbors(points: torch.Tensor, k: int = DEFAULT_K, *, backend: str = "auto") -> Neighbors:
+def find_neighbors(points: torch.Tensor, k: int = DEFAULT_K, *, backend: str = "auto",
+                   dilation: int = 1) -> Neighbors:
     """The k nearest *other* points of every point (self excluded), for caching by the caller.
+
+    ``dilation`` d > 1 keeps every d-th of the ``k * d`` nearest (the 1st, (d+1)-th, ...): a
+    neighbourhood d times larger in point count (sqrt(d) in radius) at the cost of k neighbours
+    per step; only the search itself sees ``k * d`` points.
 
     The result can be passed as ``neighbors=`` to :func:`repulsion_loss`,
     :func:`projection_loss`, :func:`local_frames` or the modules, e.g. once per optimisation
     cycle; the bandwidth mask is re-evaluated from the current positions on every call.
     """
-    return knn(points, k, exclude_self=True, backend=backend)
+    dilation = int(dilation)
+    if dilation < 1:
+        raise ValueError(f"dilation must be a positive integer, got {dilation}")
+    nb = knn(points, k * dilation, exclude_self=True, backend=backend)
+    if dilation == 1:
+        return nb
+    return Neighbors(idx=nb.idx[:, ::dilation].contiguous(), dist=nb.dist[:, ::dilation].contiguous())
 
 
 def _check_inputs(points, normals, occlusion):

@@ -103,6 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     import torch
 
+    from experiments.figures import command_line
     from pix2pix.testing import make_synthetic_pair_dataset
 
     results = []
@@ -129,6 +130,7 @@ def main(argv: list[str] | None = None) -> dict:
         "note": "synthetic dss-pairs data, loader in-process; on a shared machine compare "
                 "load_average_1min with cpu_count: a load above it slows (most) the 2-thread runs",
         "results": results,
+        "command": command_line("python -m experiments.bench_train", argv),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp_out = args.out.with_suffix(".tmp")

@@ -112,6 +112,9 @@ def main(argv=None):
     if a.out:
         from dss.io_utils import atomic_write_json
 
+        from experiments.figures import command_line
+
+        res["command"] = command_line("python -m experiments.oracle_refine", argv)
         atomic_write_json(a.out, res)
 
 

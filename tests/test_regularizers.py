@@ -304,3 +304,16 @@ def test_projection_gradient_treats_frame_and_weights_as_constants():
     idx = fr.idx.clamp(min=0).reshape(-1)
     expected = expected.index_add(0, idx, -f.reshape(-1, 3))
     torch.testing.assert_close(p.grad, expected, rtol=1e-4, atol=1e-7)
+
+
+def test_dilated_neighbours_are_every_dth_of_the_nearest():
+    g = torch.Generator().manual_seed(3)
+    p = torch.rand(300, 3, generator=g)
+    full = find_neighbors(p, 24)
+    dil = find_neighbors(p, 8, dilation=3)
+    assert dil.idx.shape == (300, 8)
+    torch.testing.assert_close(dil.dist, full.dist[:, ::3])
+    # same neighbour count, three times the reach: the farthest kept is the 22nd nearest
+    assert bool((dil.dist[:, -1] > find_neighbors(p, 8).dist[:, -1]).all())
+    with pytest.raises(ValueError, match="dilation"):
+        find_neighbors(p, 8, dilation=0)
