@@ -115,6 +115,8 @@ class OptimizerConfig:
     # neighbourhood radius of both regularisers' weighted PCA, a multiple of their bandwidth D
     # (paper: 1; dss.regularizers.RegularizerConfig.cutoff)
     reg_cutoff: float = 1.0
+    # the nearest reg_min_neighbors count whatever the cutoff (RegularizerConfig.min_neighbors)
+    reg_min_neighbors: int = 0
     views: int = 12
     fov_deg: float = 30.0
     view_jitter: float = 0.1
@@ -225,9 +227,10 @@ class MultiViewOptimizer:
         self.sampler = sampler or SphereViewSampler(tuple(center), radius, self.cfg.views, image_size,
                                                     self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed)
         self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k,
-                                   projection_mode=self.cfg.projection_mode, cutoff=self.cfg.reg_cutoff)
+                                   projection_mode=self.cfg.projection_mode, cutoff=self.cfg.reg_cutoff,
+                                   min_neighbors=self.cfg.reg_min_neighbors)
         self.rep = RepulsionLoss(_bandwidth(self.cfg.repulsion_bandwidth, p), k=self.cfg.reg_k,
-                                 cutoff=self.cfg.reg_cutoff)
+                                 cutoff=self.cfg.reg_cutoff, min_neighbors=self.cfg.reg_min_neighbors)
         self.proj.set_initial_shape(p)
         self.rep.set_initial_shape(p)
         self.lr_scale = 1.0

@@ -163,6 +163,9 @@ class RegularizerConfig:
             ``inf``: all ``k`` nearest, weighted by psi). With 1, a point farther than ``D``
             from all its neighbours (a noise tail point, an outlier) has no neighbourhood and
             is never moved by the term.
+        min_neighbors: the nearest ``min_neighbors`` neighbours count whatever their distance
+            (0: the paper's cutoff alone). With a few, noise-tail points and outliers farther
+            than the cutoff get a neighbourhood (weighted by psi like any other) and are moved.
     """
 
     k: int = DEFAULT_K
@@ -174,8 +177,11 @@ class RegularizerConfig:
     covariance_weight: str = "squared"
     knn_backend: str = "auto"
     cutoff: float = 1.0
+    min_neighbors: int = 0
 
     def __post_init__(self):
+        if int(self.min_neighbors) != self.min_neighbors or self.min_neighbors < 0:
+            raise ValueError(f"min_neighbors must be a non-negative integer, got {self.min_neighbors}")
         if not self.cutoff > 0:
             raise ValueError(f"cutoff must be positive (a multiple of the bandwidth), got {self.cutoff}")
         if int(self.k) != self.k or self.k < 1:
@@ -294,6 +300,7 @@ def local_frames(
     neighbors: Neighbors | None = None,
     backend: str = "auto",
     cutoff: float = 1.0,
+    min_neighbors: int = 0,
 ) -> LocalFrames:
     """Weighted PCA of every point's neighbourhood (see module docstring).
 
@@ -308,6 +315,8 @@ def local_frames(
         neighbors: precomputed :func:`find_neighbors` result (self excluded), or None.
         backend: kNN backend when searching.
         cutoff: neighbours farther than ``cutoff * D`` are masked out (paper: 1).
+        min_neighbors: ... except the nearest ``min_neighbors`` (0: none; the neighbour lists
+            are sorted by distance, as :func:`find_neighbors` returns them).
 
     Neighbourhoods with fewer than 3 valid neighbours have no well-defined plane; for those the
     frame is built from the given normal ``n_i`` when it is non-zero (else the PCA result, which
@@ -336,6 +345,8 @@ def local_frames(
     with torch.no_grad():
         dist2 = (diff.detach() ** 2).sum(-1)
         valid = (idx >= 0) & (dist2 <= (cutoff * bandwidth) ** 2)
+        if min_neighbors > 0:
+            valid[:, :min_neighbors] |= idx[:, :min_neighbors] >= 0
         validf = valid.to(points.dtype)
     # Masked neighbours contribute nothing (and no gradient); outside no_grad to keep the graph.
     diff = diff * validf.unsqueeze(-1)
@@ -503,6 +514,7 @@ class _SurfaceRegularizer(torch.nn.Module):
             neighbors=neighbors,
             backend=self.config.knn_backend,
             cutoff=self.config.cutoff,
+            min_neighbors=self.config.min_neighbors,
         )
 
     def extra_repr(self) -> str:

@@ -34,7 +34,7 @@ def _value(text: str):
     return text
 
 
-def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
+def denoise_optimizer_defaults(noise: float, n_points: int) -> dict:
     """The optimiser block of conf/denoise.yaml (dss-denoise's settings, ``auto`` entries resolved
     for ``noise`` as dss-denoise does, views from its default budget), so that the oracle run
     differs from the main job only in its references."""
@@ -43,7 +43,7 @@ def denoise_optimizer_defaults(noise: float = 0.01) -> dict:
     from experiments.denoise import resolve_all_by_noise
 
     cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml")
-    resolve_all_by_noise(cfg, noise)
+    resolve_all_by_noise(cfg, noise, n_points)
     # the views of dss-denoise's default budget (an explicit views= there is not seen here)
     return {**OmegaConf.to_container(cfg.optimizer, resolve=True), "views": int(cfg.budgets.default.views)}
 
@@ -73,7 +73,8 @@ def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: in
 
         return render(ref_p, ref_n, cams, settings, shading=shading).images
 
-    cfg = OptimizerConfig(**{**denoise_optimizer_defaults(), "cycles": cycles, "seed": seed, **(overrides or {})})
+    defaults = denoise_optimizer_defaults(0.01, len(npt))  # the example's noise level
+    cfg = OptimizerConfig(**{**defaults, "cycles": cycles, "seed": seed, **(overrides or {})})
     sampler = SpecViewSampler(spec, views=cfg.views, seed=seed, jitter=cfg.view_jitter)
     curve = [{"step": 0, "chamfer": evaluate(npt, cp).chamfer}]
     log.info("input Chamfer %.3f (x1e4)", curve[0]["chamfer"])

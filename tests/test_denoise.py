@@ -11,6 +11,7 @@ not denoising quality.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -381,6 +382,32 @@ def test_shipped_config_resolves_every_auto_setting():
         notes = resolve_all_by_noise(cfg, noise)
         assert set(notes) == {k for k, _ in BY_NOISE}
         assert cfg.optimizer.reg_cutoff == cutoff and notes["reg_cutoff"]["used"] == cutoff
+
+
+def test_neighbourhood_dilation_follows_density():
+    """reg_dilation=auto: 1 up to ~30K points (the tuned setting), 5 at 100K, capped; the cutoff
+    from the noise table grows to sqrt(d) only when it was auto itself."""
+    from omegaconf import OmegaConf
+
+    from experiments.denoise import resolve_all_by_noise, resolve_neighbourhood
+
+    conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
+    for n, d, cutoff in ((10000, 1, 1.0), (20000, 1, 1.0), (50000, 3, math.sqrt(3)), (100000, 5, math.sqrt(5)),
+                         (10**7, 8, math.sqrt(8))):
+        cfg = OmegaConf.load(conf)
+        notes = resolve_all_by_noise(cfg, 0.01, n)
+        assert cfg.optimizer.reg_dilation == d and notes["reg_dilation"]["used"] == d
+        assert cfg.optimizer.reg_cutoff == pytest.approx(cutoff) and notes["reg_cutoff"]["used"] == pytest.approx(cutoff)
+    cfg = OmegaConf.load(conf)
+    resolve_all_by_noise(cfg, 0.02, 100000)  # the 2% table's 3 x D already exceeds sqrt(5)
+    assert cfg.optimizer.reg_dilation == 5 and cfg.optimizer.reg_cutoff == 3.0
+    fixed = OmegaConf.create({"optimizer": {"reg_dilation": "auto", "reg_cutoff": 1.5}})
+    note = resolve_neighbourhood(fixed, 100000, {"setting": 1.5, "used": 1.5})
+    assert fixed.optimizer.reg_dilation == 5 and fixed.optimizer.reg_cutoff == 1.5 and "reg_cutoff" not in note
+    given = OmegaConf.create({"optimizer": {"reg_dilation": 2}})
+    assert resolve_neighbourhood(given, 100000) == {"setting": 2, "used": 2}
+    with pytest.raises(ValueError, match="point count"):
+        resolve_neighbourhood(OmegaConf.create({"optimizer": {"reg_dilation": "auto"}}), 0)
 
 
 def test_budget_presets_set_views_and_scale_auto_cycles():

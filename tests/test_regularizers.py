@@ -317,3 +317,22 @@ def test_dilated_neighbours_are_every_dth_of_the_nearest():
     assert bool((dil.dist[:, -1] > find_neighbors(p, 8).dist[:, -1]).all())
     with pytest.raises(ValueError, match="dilation"):
         find_neighbors(p, 8, dilation=0)
+
+
+def test_min_neighbors_gives_isolated_points_a_plane():
+    """A point farther than cutoff * D from every neighbour is never moved by the paper's
+    projection term; with min_neighbors its nearest neighbours still count and pull it back."""
+    p = _grid(12)
+    lone = torch.tensor([[0.0, 0.0, 0.3]])  # 6 grid spacings above the plane
+    pts = torch.cat([p, lone]).requires_grad_()
+    D = 2 * S
+    for m, moves in ((0, False), (4, True)):
+        fr = local_frames(pts, None, None, bandwidth=D, k=8, min_neighbors=m)
+        assert int(fr.valid[-1].sum()) == (4 if m else 0)
+        loss = projection_loss(pts, bandwidth=D, frames=fr)
+        (g,) = torch.autograd.grad(loss, pts)
+        assert (g[-1, 2].abs() > 0).item() is moves
+        if moves:
+            assert g[-1, 2] > 0  # descent moves it down, toward the plane
+    with pytest.raises(ValueError, match="min_neighbors"):
+        RegularizerConfig(min_neighbors=-1)
