@@ -53,16 +53,22 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Callable
 
 import torch
 
 from .cameras import Cameras
 from .losses import l1_loss, smape_loss
-from .regularizers import ProjectionLoss, RegularizerConfig, RepulsionLoss, find_neighbors
-from .splats import auto_sigma
+from .regularizers import (
+    ProjectionLoss,
+    RegularizerConfig,
+    RepulsionLoss,
+    find_neighbors,
+    project_to_neighbour_planes,
+)
 from .render import RenderOutput, RenderSettings, render
+from .splats import auto_sigma
 from .views import SphereViewSampler, error_aware_cameras
 
 log = logging.getLogger(__name__)
@@ -117,6 +123,9 @@ class OptimizerConfig:
     reg_cutoff: float = 1.0
     # the nearest reg_min_neighbors count whatever the cutoff (RegularizerConfig.min_neighbors)
     reg_min_neighbors: int = 0
+    # > 0: after the last cycle, project every point onto the plane of its final_projection_k
+    # (x reg_dilation) nearest (dss.regularizers.project_to_neighbour_planes); 0: the paper (none)
+    final_projection_k: int = 0
     views: int = 12
     fov_deg: float = 30.0
     view_jitter: float = 0.1
@@ -489,6 +498,9 @@ class MultiViewOptimizer:
                                          "loss": loss, "cameras": cams})
                 if progress is not None:
                     progress(step, loss)
+        if c.final_projection_k > 0:
+            with torch.no_grad():
+                self.points.copy_(project_to_neighbour_planes(self.points, c.final_projection_k, c.reg_dilation))
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
         return OptimizationResult(self.points.detach().clone(), self.normals.detach().clone(), self.history)

@@ -91,6 +91,7 @@ __all__ = [
     "default_bandwidth",
     "large_deformation_bandwidth",
     "bandwidth_for",
+    "project_to_neighbour_planes",
     "find_neighbors",
     "local_frames",
     "repulsion_loss",
@@ -257,6 +258,30 @@ def find_neighbors(points: torch.Tensor, k: int = DEFAULT_K, *, backend: str = "
     if dilation == 1:
         return nb
     return Neighbors(idx=nb.idx[:, ::dilation].contiguous(), dist=nb.dist[:, ::dilation].contiguous())
+
+
+def project_to_neighbour_planes(points: torch.Tensor, k: int = 32, dilation: int = 1) -> torch.Tensor:
+    """Move every point onto the least-squares plane of its ``k`` nearest other points
+    (unweighted PCA, no cutoff; ``dilation`` as in :func:`find_neighbors`). (N, 3) -> (N, 3).
+
+    A one-shot, non-differentiable finishing step (``OptimizerConfig.final_projection_k``):
+    unlike the projection term it reaches isolated noise-tail points, whose nearest neighbours
+    lie beyond the bandwidth or are themselves off the surface (conf/denoise.yaml measures it).
+    """
+    if points.dim() != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
+    if points.shape[0] <= k * dilation:
+        raise ValueError(f"{points.shape[0]} points are too few for {k} x {dilation} neighbours")
+    with torch.no_grad():
+        p = points.detach().double()
+        idx = find_neighbors(p, k, dilation=dilation).idx
+        nb = gather_neighbors(p, idx)
+        centroid = nb.mean(1)
+        centred = nb - centroid.unsqueeze(1)
+        _, evecs = torch.linalg.eigh(torch.einsum("nki,nkj->nij", centred, centred))
+        normal = evecs[..., 0]
+        offset = ((p - centroid) * normal).sum(-1, keepdim=True)
+        return (p - offset * normal).to(points.dtype)
 
 
 def _check_inputs(points, normals, occlusion):

@@ -14,7 +14,7 @@ Stages (each usable on its own):
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 

@@ -11,7 +11,6 @@ warm-up run, all in this process; the JSON records the machine (threads, CPU mod
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import platform

@@ -19,7 +19,6 @@ import logging
 import time
 from pathlib import Path
 
-
 log = logging.getLogger("oracle-refine")
 
 EXAMPLE = Path(__file__).parent / "assets" / "example"
@@ -112,7 +111,6 @@ def main(argv=None):
           f"({a.reference} references, {res['wall_time_s']:.0f} s)")
     if a.out:
         from dss.io_utils import atomic_write_json
-
         from experiments.figures import command_line
 
         res["command"] = command_line("python -m experiments.oracle_refine", argv)

@@ -20,7 +20,13 @@ from dss.cameras import fit_distance, focal_from_fov, fps_sphere_cameras, ring_c
 from dss.pointcloud import load_ply, normalize_unit_diagonal
 from dss.render import render, resolve_backend
 from dss.viz import colorize_depth, colorize_normals, image_grid, save_png, to_uint8
-from experiments.common import positional_to_override, renderer_settings, run_dir, save_config, save_metrics
+from experiments.common import (
+    positional_to_override,
+    renderer_settings,
+    run_dir,
+    save_config,
+    save_metrics,
+)
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,6 @@ import os
 import pytest
 import torch
 
-
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
 

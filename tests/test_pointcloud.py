@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import torch
+from scenes import sphere_points
 
 from dss.pointcloud import (
     PointCloud,
@@ -12,8 +13,6 @@ from dss.pointcloud import (
     normalize_unit_diagonal,
     save_ply,
 )
-
-from scenes import sphere_points
 
 
 def _write_ascii_ply(path, pts, normals=None):

@@ -336,3 +336,19 @@ def test_min_neighbors_gives_isolated_points_a_plane():
             assert g[-1, 2] > 0  # descent moves it down, toward the plane
     with pytest.raises(ValueError, match="min_neighbors"):
         RegularizerConfig(min_neighbors=-1)
+
+
+def test_project_to_neighbour_planes_flattens_a_noisy_plane_and_pulls_in_a_tail_point():
+    from dss.regularizers import project_to_neighbour_planes
+
+    g = torch.Generator().manual_seed(5)
+    p = _grid(20) @ _rotation(2).T
+    normal = _rotation(2)[:, 2]
+    noisy = p + 0.01 * torch.randn(len(p), 1, generator=g) * normal
+    noisy[0] += 0.2 * normal  # a tail point four grid spacings off the plane
+    out = project_to_neighbour_planes(noisy, k=16)
+    height = lambda q: (q @ normal).abs()  # noqa: E731
+    assert float(height(out).mean()) < 0.5 * float(height(noisy[1:]).mean())
+    assert float(height(out)[0]) < 0.02 < float(height(noisy)[0])
+    with pytest.raises(ValueError, match="too few"):
+        project_to_neighbour_planes(noisy[:10], k=16)

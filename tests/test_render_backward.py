@@ -2,9 +2,9 @@
 
 import pytest
 import torch
+from scenes import axis_camera, random_scene
 
 from dss.render import RenderSettings, render
-from scenes import axis_camera, random_scene
 
 Z = 2.0
 FOCAL = 100.0
@@ -206,8 +206,9 @@ def test_colors_receive_gradients():
 
 def _shrink_scene(n=2000, size=96, views=6):
     """A sphere of radius 0.3 rendered against a target sphere of radius 0.24 (same normals)."""
-    from dss.views import SphereViewSampler
     from scenes import sphere_points
+
+    from dss.views import SphereViewSampler
 
     sp, sn = sphere_points(n, 0.3)
     tp, tn = sphere_points(n, 0.24)
@@ -264,8 +265,8 @@ def test_spatial_sort_changes_nothing_but_speed(backend, request):
     """render() draws a Morton-sorted copy (dss.ordering) and maps everything back: images,
     gradients (per-point sigma and colours included), the fragment cache and the splats equal
     an unsorted render's, in the caller's order."""
-    from dss.ordering import SORT_MIN_POINTS
     from dss.optimize import occlusion_counts
+    from dss.ordering import SORT_MIN_POINTS
 
     if backend == "cpp":
         backend = request.getfixturevalue("cpp_backend")

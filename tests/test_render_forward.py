@@ -4,11 +4,11 @@ import math
 
 import pytest
 import torch
+from scenes import axis_camera, random_scene, sphere_points
 
 from dss.rasterizer import reference as ref
 from dss.rasterizer.fragments import Fragments
 from dss.render import RenderSettings, render
-from scenes import axis_camera, random_scene, sphere_points
 
 BACKENDS = ["reference", "cpp"]
 

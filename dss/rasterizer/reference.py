@@ -13,7 +13,7 @@ import math
 import torch
 
 from ..splats import Splats
-from .fragments import Fragments, visible_mask
+from .fragments import Fragments
 
 __all__ = ["rasterize", "blend", "bbox"]
 
