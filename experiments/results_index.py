@@ -83,8 +83,7 @@ def _figure(path: Path, base: Path, alt: str) -> list[str]:
 
 
 # ------------------------------------------------------------------------- denoising tables
-def _denoise_table(path: Path, base: Path) -> list[str]:
-    d = _load(path)
+def _denoise_table(path: Path, d: dict, base: Path) -> list[str]:
     folder = path.parent
     command = _readme_command(folder) or "dss-denoise-table (command not recorded)"
     rows = [{**r, "mean": r.get("mean") or {}} for r in d.get("rows", [])]
@@ -138,8 +137,7 @@ def _denoise_table(path: Path, base: Path) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------- sweeps
-def _sweep(path: Path, base: Path) -> list[str]:
-    d = _load(path)
+def _sweep(path: Path, d: dict, base: Path) -> list[str]:
     folder = path.parent
     out = [f"### {d.get('title', _rel(folder, base))}", "",
            f"`{d.get('command', 'dss-sweep')}` -> `{_rel(folder, base)}/` (`sweep.md` has CD, failures and "
@@ -176,8 +174,7 @@ def _sweep(path: Path, base: Path) -> list[str]:
 
 
 # --------------------------------------------------------------------------------- runtime
-def _runtime(path: Path, base: Path) -> list[str]:
-    d = _load(path)
+def _runtime(path: Path, d: dict, base: Path) -> list[str]:
     mach = d.get("machine", {})
     out = [f"### Runtime table: `{_rel(path.with_suffix('.md'), base)}`", "",
            f"`{d.get('command', 'dss-runtime-table')}`: {mach.get('cores', '?')} cores ({mach.get('cpu', '?')}), "
@@ -209,12 +206,11 @@ def _runtime(path: Path, base: Path) -> list[str]:
 
 
 # --------------------------------------------------------------------------------- deform
-def _deform(paths: list[Path], base: Path) -> list[str]:
+def _deform(loaded: list[tuple[Path, dict]], base: Path) -> list[str]:
     out = ["Each scene: `dss-deform scene=<scene>` (the folder name; `config.yaml` has the settings), "
            "`snapshots.png` and `chamfer_vs_time.png` beside `metrics.json`.", ""]
     body = []
-    for p in paths:
-        m = _load(p)
+    for p, m in loaded:
         body.append([f"[{p.parent.name}]({_rel(p.parent, base)}/snapshots.png)",
                      f"{_fmt(m.get('initial_chamfer'))} -> {_fmt(m.get('chamfer'))}",
                      f"{_fmt(m.get('initial_hausdorff'))} -> {_fmt(m.get('hausdorff'))}",
@@ -258,34 +254,24 @@ def build(results: Path) -> str:
     def in_sweep(p: Path) -> bool:
         return any(s in p.parents for s in sweep_dirs)
 
-    def setting(p: Path) -> tuple:
-        d = _load(p) or {}
-        return d.get("noise", 0), d.get("points", 0), p.as_posix()
+    def loaded(paths) -> list[tuple[Path, dict]]:
+        return [(p, d) for p in paths if (d := _load(p)) is not None]
 
-    tables = sorted((p for p in results.rglob("table.json") if not in_sweep(p)), key=setting)
-    runtimes = sorted(p for p in results.rglob("runtime_table*.json") if not in_sweep(p))
-    deforms = sorted(results.glob("deform/*/metrics.json"))
-    used = set(tables) | set(sweeps) | set(runtimes) | set(deforms)
+    tables = sorted(loaded(p for p in results.rglob("table.json") if not in_sweep(p)),
+                    key=lambda pd: (pd[1].get("noise", 0), pd[1].get("points", 0), pd[0].as_posix()))
+    runtimes = loaded(sorted(p for p in results.rglob("runtime_table*.json") if not in_sweep(p)))
+    deforms = loaded(sorted(results.glob("deform/*/metrics.json")))
+    used = {p for p, _ in tables + runtimes + deforms} | set(sweeps)
 
     lines = [HEADER]
-    contents = []
-    if tables:
-        contents.append("Denoising tables")
-        lines += ["## Denoising tables (`dss-denoise-table`)", ""]
-        for p in tables:
-            lines += _denoise_table(p, results)
-    if sweeps:
-        contents.append("Sweeps")
-        lines += ["## Stability sweeps and budget study (`dss-sweep`)", ""]
-        for p in sweeps:
-            lines += _sweep(p, results)
-    if runtimes:
-        contents.append("Speed")
-        lines += ["## Speed (`dss-runtime-table`)", ""]
-        for p in runtimes:
-            lines += _runtime(p, results)
+    for heading, items, section in (("Denoising tables (`dss-denoise-table`)", tables, _denoise_table),
+                                    ("Stability sweeps and budget study (`dss-sweep`)", loaded(sweeps), _sweep),
+                                    ("Speed (`dss-runtime-table`)", runtimes, _runtime)):
+        if items:
+            lines += [f"## {heading}", ""]
+            for p, d in items:
+                lines += section(p, d, results)
     if deforms:
-        contents.append("Shape-from-rendering")
         lines += ["## Shape-from-rendering (`dss-deform`)", ""]
         lines += _deform(deforms, results)
     others = []
