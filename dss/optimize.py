@@ -123,9 +123,15 @@ class OptimizerConfig:
     reg_cutoff: float = 1.0
     # the nearest reg_min_neighbors count whatever the cutoff (RegularizerConfig.min_neighbors)
     reg_min_neighbors: int = 0
-    # > 0: after the last cycle, project every point onto the plane of its final_projection_k
-    # (x reg_dilation) nearest (dss.regularizers.project_to_neighbour_planes); 0: the paper (none)
+    # > 0: after the last cycle, project points onto the plane of their final_projection_k
+    # (x reg_dilation) nearest (dss.regularizers.project_to_neighbour_planes); 0: the paper (none).
+    # final_projection_threshold t > 0 moves only the outliers (plane distance > t robust
+    # sigmas and > final_projection_local_ratio x their neighbours' median, onto their nearest
+    # inliers' plane), final_projection_iterations times; t = 0: every point
     final_projection_k: int = 0
+    final_projection_threshold: float = 3.0
+    final_projection_local_ratio: float = 3.0
+    final_projection_iterations: int = 2
     views: int = 12
     fov_deg: float = 30.0
     view_jitter: float = 0.1
@@ -167,6 +173,12 @@ class OptimizerConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.cycles + self.error_aware_cycles == 0 or self.normal_steps + self.point_steps == 0:
             raise ValueError("nothing to do: cycles and steps are all zero")
+        if min(self.final_projection_k, self.final_projection_threshold, self.final_projection_local_ratio) < 0:
+            raise ValueError("final_projection_k, _threshold and _local_ratio must be >= 0, got "
+                             f"{self.final_projection_k}, {self.final_projection_threshold}, "
+                             f"{self.final_projection_local_ratio}")
+        if self.final_projection_iterations < 1:
+            raise ValueError(f"final_projection_iterations must be >= 1, got {self.final_projection_iterations}")
 
 
 @dataclass
@@ -500,7 +512,10 @@ class MultiViewOptimizer:
                     progress(step, loss)
         if c.final_projection_k > 0:
             with torch.no_grad():
-                self.points.copy_(project_to_neighbour_planes(self.points, c.final_projection_k, c.reg_dilation))
+                self.points.copy_(project_to_neighbour_planes(
+                    self.points, c.final_projection_k, c.reg_dilation,
+                    threshold=c.final_projection_threshold, local_ratio=c.final_projection_local_ratio,
+                    iterations=c.final_projection_iterations))
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
         return OptimizationResult(self.points.detach().clone(), self.normals.detach().clone(), self.history)

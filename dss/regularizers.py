@@ -260,9 +260,37 @@ def find_neighbors(points: torch.Tensor, k: int = DEFAULT_K, *, backend: str = "
     return Neighbors(idx=nb.idx[:, ::dilation].contiguous(), dist=nb.dist[:, ::dilation].contiguous())
 
 
-def project_to_neighbour_planes(points: torch.Tensor, k: int = 32, dilation: int = 1) -> torch.Tensor:
-    """Move every point onto the least-squares plane of its ``k`` nearest other points
+def _fit_planes(neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unweighted least-squares planes of (N, K, 3) neighbourhoods: centroids (N, 3) and unit
+    normals (N, 3) (eigenvector of the smallest eigenvalue of the scatter matrix)."""
+    centroid = neighbours.mean(1)
+    centred = neighbours - centroid.unsqueeze(1)
+    _, evecs = torch.linalg.eigh(torch.einsum("nki,nkj->nij", centred, centred))
+    return centroid, evecs[..., 0]
+
+
+def project_to_neighbour_planes(
+    points: torch.Tensor,
+    k: int = 32,
+    dilation: int = 1,
+    *,
+    threshold: float = 0.0,
+    local_ratio: float = 0.0,
+    iterations: int = 1,
+) -> torch.Tensor:
+    """Move points onto the least-squares plane of their ``k`` nearest other points
     (unweighted PCA, no cutoff; ``dilation`` as in :func:`find_neighbors`). (N, 3) -> (N, 3).
+
+    ``threshold`` 0 moves every point. ``threshold`` t > 0 moves only the *outliers*: points
+    whose distance r_i to their neighbours' plane exceeds t * sigma, sigma = 1.4826 *
+    median(r) (the residuals' robust scale, the std for Gaussian residuals); each outlier goes
+    onto the plane of its ``k`` (x ``dilation``) nearest *inliers*, so a small clump of
+    off-surface points no longer tilts its own plane. ``local_ratio`` q > 0 also requires
+    r_i > q * median of its neighbours' r: near a sharp edge or a thin part every point is far
+    from its neighbours' plane (the plane is wrong there, not the point), while a noise-tail
+    point stands out from its neighbourhood. ``iterations`` repeats flag-and-project (a
+    clump's last points are flagged once the others have moved). Inliers never move, so the
+    surface's fine detail is kept.
 
     A one-shot, non-differentiable finishing step (``OptimizerConfig.final_projection_k``):
     unlike the projection term it reaches isolated noise-tail points, whose nearest neighbours
@@ -272,16 +300,34 @@ def project_to_neighbour_planes(points: torch.Tensor, k: int = 32, dilation: int
         raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
     if points.shape[0] <= k * dilation:
         raise ValueError(f"{points.shape[0]} points are too few for {k} x {dilation} neighbours")
+    if not threshold >= 0:
+        raise ValueError(f"threshold must be >= 0 (0: move every point), got {threshold}")
+    if not local_ratio >= 0:
+        raise ValueError(f"local_ratio must be >= 0 (0: no local test), got {local_ratio}")
+    if int(iterations) != iterations or iterations < 1:
+        raise ValueError(f"iterations must be a positive integer, got {iterations}")
     with torch.no_grad():
-        p = points.detach().double()
-        idx = find_neighbors(p, k, dilation=dilation).idx
-        nb = gather_neighbors(p, idx)
-        centroid = nb.mean(1)
-        centred = nb - centroid.unsqueeze(1)
-        _, evecs = torch.linalg.eigh(torch.einsum("nki,nkj->nij", centred, centred))
-        normal = evecs[..., 0]
-        offset = ((p - centroid) * normal).sum(-1, keepdim=True)
-        return (p - offset * normal).to(points.dtype)
+        p = points.detach().double().clone()  # never write into the caller's tensor
+        for _ in range(int(iterations)):
+            idx = find_neighbors(p, k, dilation=dilation).idx
+            centroid, normal = _fit_planes(gather_neighbors(p, idx))
+            offset = ((p - centroid) * normal).sum(-1)
+            if threshold == 0:
+                p = p - offset.unsqueeze(-1) * normal
+                continue
+            r = offset.abs()
+            out = r > threshold * 1.4826 * r.median()
+            if local_ratio > 0:
+                out &= r > local_ratio * r[idx].median(1).values
+            n_out = int(out.sum())
+            if n_out == 0 or n_out > p.shape[0] - k * dilation:
+                break
+            inliers = p[~out]
+            nb = knn(inliers, k * dilation, query=p[out]).idx[:, ::dilation]
+            centroid, normal = _fit_planes(gather_neighbors(inliers, nb))
+            off = ((p[out] - centroid) * normal).sum(-1, keepdim=True)
+            p[out] = p[out] - off * normal
+        return p.to(points.dtype)
 
 
 def _check_inputs(points, normals, occlusion):

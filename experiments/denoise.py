@@ -142,7 +142,7 @@ def resolve_by_noise(cfg: DictConfig, noise: float, key: str, cast=float) -> dic
 
 
 #: optimiser settings that may be ``auto`` (taken from ``<key>_by_noise`` in conf/denoise.yaml)
-BY_NOISE = (("cycles", int), ("projection_weight", float), ("reg_cutoff", float))
+BY_NOISE = (("cycles", int), ("projection_weight", float), ("reg_cutoff", float), ("final_projection_k", int))
 
 
 def resolve_all_by_noise(cfg: DictConfig, noise: float, n_points: int | None = None) -> dict:

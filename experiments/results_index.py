@@ -144,7 +144,7 @@ def _sweep(path: Path, d: dict, base: Path) -> list[str]:
            f"time per cell). Base: {d.get('base', '?')}; {_fmt(d.get('time_s'), 3)} s (resumed records not rerun).",
            "", "Cells: mean output/input Chamfer ratio over the cases (failed runs / runs when any failed).", ""]
     for axis in d.get("axes", []):
-        name, values = axis["axis"], axis["values"]
+        name, values = axis["axis"], axis.get("labels") or axis["values"]
         out += [f"#### {name} (`{axis.get('key', name)}`)", ""]
         out += _figure(folder / f"{name}.png", base, name)
         body = []

@@ -95,6 +95,8 @@ def axis_points(study: DictConfig, names: list[str], base: DictConfig) -> list[d
             raise ValueError(f"axes_to_run: unknown axis {name!r}; this study has {list(axes)}")
         ax = axes[name]
         key = str(ax.key)
+        if ax.get("labels") is not None and len(ax.labels) != len(ax["values"]):
+            raise ValueError(f"axis {name}: {len(ax.labels)} labels for {len(ax['values'])} values")
         for value in ax["values"]:
             settings = {**defaults, key: value}
             table = OmegaConf.merge(base, ax.get("table") or {})
@@ -170,7 +172,7 @@ def render_markdown(result: dict) -> str:
              "its input (Chamfer). CD x1e4, HD x1e3, P2M x1e4 (`paper` protocol); ratio = output CD / "
              "input CD, mean over cases; time = mean method wall time (s).", ""]
     for ax in result["axes"]:
-        name, methods, values = ax["axis"], ax["methods"], ax["values"]
+        name, methods, values = ax["axis"], ax["methods"], ax.get("labels") or ax["values"]
         lines += [f"## {name}" + (f" ({ax['key']})" if ax["key"] != name else ""), "", f"![{name}]({name}.png)", "",
                   "| method | " + " | ".join(f"{ax['key_name']}={_fmt(v)}" for v in values) + " |",
                   "|---|" + "---|" * len(values)]
@@ -214,7 +216,7 @@ def plot_axis(ax_res: dict, path: Path, title: str) -> Path:
 
     from dss.io_utils import atomic_savefig
 
-    values, methods = ax_res["values"], ax_res["methods"]
+    values, methods = ax_res.get("labels") or ax_res["values"], ax_res["methods"]
     numeric = all(isinstance(v, (int, float)) for v in values)
     xs = [float(v) for v in values] if numeric else list(range(len(values)))
     fig, axs = plt.subplots(1, 3, figsize=(15, 4.2))
@@ -290,11 +292,15 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         stats = [p["stats"] for p in pts]
         per = {m: [s.get(m) for s in stats] for m in methods}
         ax = study.axes[name]
-        axes_res.append({"axis": name, "key": str(ax.key), "key_name": _key_name(str(ax.key)),
-                         "log": bool(ax.get("log", False)), "values": values, "methods": methods,
+        # labels: what the tables and charts show for each value (e.g. a model file's width)
+        labels = list(ax.get("labels") or values)
+        to_label = {str(v): lab for v, lab in zip(values, labels)}
+        to_label["None"] = None  # no onset / no knee
+        axes_res.append({"axis": name, "key": str(ax.key), "key_name": str(ax.get("label_name") or _key_name(str(ax.key))),
+                         "log": bool(ax.get("log", False)), "values": values, "labels": labels, "methods": methods,
                          "stats": stats, "settings": [p["setting"] for p in pts],
-                         "onset": {m: first_failure(values, per[m]) for m in methods},
-                         "knee": {m: knee(values, per[m], tol) for m in methods} if ax.get("knee") else {}})
+                         "onset": {m: to_label[str(first_failure(values, per[m]))] for m in methods},
+                         "knee": {m: to_label[str(knee(values, per[m], tol))] for m in methods} if ax.get("knee") else {}})
     b = {k: base[k] for k in ("points", "noise", "outliers", "seed")}
     result = {"title": str(study.get("title", f"dss-sweep: {study.name}")), "study": str(study.name),
               "description": str(study.get("description", "")), "base": ", ".join(f"{k} {v}" for k, v in b.items()),

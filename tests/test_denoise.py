@@ -371,17 +371,19 @@ def test_auto_projection_weight_follows_the_noise_level():
 
 def test_shipped_config_resolves_every_auto_setting():
     """conf/denoise.yaml: every ``auto`` optimiser entry has its table; 2% noise widens the
-    regularisers' neighbourhood (reg_cutoff 3), 1% keeps the paper's (1)."""
+    regularisers' neighbourhood (reg_cutoff 3) and the final outlier projection's (k 96), 1%
+    keeps the paper's cutoff (1) and k 32."""
     from omegaconf import OmegaConf
 
     from experiments.denoise import BY_NOISE, resolve_all_by_noise
 
     conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
-    for noise, cutoff in ((0.01, 1.0), (0.02, 3.0), (0.03, 3.0)):
+    for noise, cutoff, k in ((0.01, 1.0, 32), (0.02, 3.0, 96), (0.03, 3.0, 96)):
         cfg = OmegaConf.load(conf)
         notes = resolve_all_by_noise(cfg, noise)
         assert set(notes) == {k for k, _ in BY_NOISE}
         assert cfg.optimizer.reg_cutoff == cutoff and notes["reg_cutoff"]["used"] == cutoff
+        assert cfg.optimizer.final_projection_k == k and notes["final_projection_k"]["used"] == k
 
 
 def test_neighbourhood_dilation_follows_density():

@@ -125,6 +125,27 @@ def test_projection_flattens_a_noisy_plane_during_normal_steps():
 
 
 
+def test_final_projection_pulls_in_a_tail_point_after_the_last_cycle():
+    """OptimizerConfig.final_projection_k: with no regulariser the outlier stays where it is;
+    the final outlier projection puts it back on the plane and leaves the inliers untouched."""
+    pts, nrm, st, sampler, ref = _noisy_plane(0)
+    pts = pts.clone()
+    pts[0, 2] = 0.2  # 20 noise sigmas above the plane
+    out = {}
+    for k in (0, 32):
+        cfg = OptimizerConfig(cycles=1, normal_steps=2, point_steps=0, lr_normals=0.0, views=1,
+                              projection_weight=0.0, repulsion_weight=0.0, final_projection_k=k)
+        out[k] = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32).run().points
+    assert float(out[0][0, 2]) == pytest.approx(0.2)
+    assert abs(float(out[32][0, 2])) < 0.03
+    moved = (out[32] - out[0]).norm(dim=-1) > 0
+    assert int(moved.sum()) < 0.02 * len(pts)
+    with pytest.raises(ValueError, match="final_projection"):
+        OptimizerConfig(final_projection_local_ratio=-1.0)
+    with pytest.raises(ValueError, match="final_projection_iterations"):
+        OptimizerConfig(final_projection_iterations=0)
+
+
 def test_point_motion_along_normals_stops_tangential_drift():
     """point_motion="normal" moves each point only along its own normal (here +z, fixed); "free"
     also slides points sideways (the projection term pulls a point toward each tilted neighbour
@@ -193,7 +214,7 @@ def test_every_step_calibration_keeps_the_regulariser_step_size():
                               lr_points=2.0, lr_scale=1.0, clip_point_grad=None)
         trail = []
         opt = MultiViewOptimizer(pts, nrm, ref_shifted, cfg, st, sampler=sampler, shading=SUN, image_size=32,
-                                 callback=lambda step, state: trail.append(state["points"].clone()))
+                                 callback=lambda step, state, trail=trail: trail.append(state["points"].clone()))
         opt.run()
         last_step[cal] = (trail[-1] - trail[-2]).norm(dim=1).mean().item()
     assert last_step["every_step"] > 1.5 * last_step["once"] > 0

@@ -352,3 +352,59 @@ def test_project_to_neighbour_planes_flattens_a_noisy_plane_and_pulls_in_a_tail_
     assert float(height(out)[0]) < 0.02 < float(height(noisy)[0])
     with pytest.raises(ValueError, match="too few"):
         project_to_neighbour_planes(noisy[:10], k=16)
+
+
+def test_outlier_projection_moves_only_a_clump_of_outliers_and_lands_it_on_the_surface():
+    from dss.regularizers import project_to_neighbour_planes
+
+    g = torch.Generator().manual_seed(6)
+    p = _grid(24) @ _rotation(3).T
+    normal = _rotation(3)[:, 2]
+    noisy = p + 0.005 * torch.randn(len(p), 1, generator=g) * normal
+    # three neighbouring grid points lifted together: their own 16-neighbour plane is tilted
+    # toward them, so one plain projection leaves them well off the surface
+    clump = [300, 301, 324]
+    noisy[clump] += 0.25 * normal
+    height = lambda q: (q @ normal).abs()  # noqa: E731
+    plain = project_to_neighbour_planes(noisy, k=16)
+    out = project_to_neighbour_planes(noisy, k=16, threshold=3.0, iterations=2)
+    inliers = torch.ones(len(p), dtype=torch.bool)
+    inliers[clump] = False
+    assert float(height(plain)[clump].max()) > 0.03
+    assert float(height(out)[clump].max()) < 0.015  # ~3 noise sigmas: back on the surface
+    moved = (out - noisy).norm(dim=-1) > 0
+    assert not bool(moved[inliers].all()) and int(moved[inliers].sum()) < 0.05 * len(p)
+    # points that did not move are bit-identical (fine detail kept)
+    assert torch.equal(out[~moved], noisy[~moved])
+    with pytest.raises(ValueError, match="threshold"):
+        project_to_neighbour_planes(noisy, k=16, threshold=-1.0)
+    with pytest.raises(ValueError, match="iterations"):
+        project_to_neighbour_planes(noisy, k=16, iterations=0)
+
+
+def test_outlier_projection_local_test_keeps_a_sharp_edge_and_never_writes_into_its_input():
+    from dss.regularizers import project_to_neighbour_planes
+
+    g = torch.Generator().manual_seed(7)
+    flat = _grid(30).double()
+    # fold the sheet along x = 0 into a 90-degree roof: near the ridge every neighbourhood's
+    # plane is wrong, so every ridge point is "far from its plane"
+    x = flat[:, 0]
+    roof = torch.stack([x, flat[:, 1], -x.abs()], 1)
+    roof = roof + 1e-3 * S * torch.randn(roof.shape, generator=g, dtype=roof.dtype)
+    o = 7 * 30 + 15  # one real outlier, on the x < 0 slope, far from the ridge and the border
+    roof[o, 2] += 6 * S
+    before = roof.clone()
+    plain = project_to_neighbour_planes(roof, k=16, threshold=3.0, iterations=1)
+    local = project_to_neighbour_planes(roof, k=16, threshold=3.0, local_ratio=3.0, iterations=1)
+    assert torch.equal(roof, before)  # float64 input: still a copy
+    moved_plain = (plain - roof).norm(dim=-1) > 1e-9
+    moved_local = (local - roof).norm(dim=-1) > 1e-9
+    # the ridge away from the sheet's border (at a border corner even the neighbours disagree)
+    ridge = (x.abs() < 2.5 * S) & (flat[:, 1].abs() < flat[:, 1].max() - 3 * S)
+    assert int(moved_plain[ridge].sum()) > 20  # the global test alone flattens the edge
+    assert int(moved_local[ridge].sum()) == 0
+    slope_distance = abs(float(local[o, 2] - local[o, 0])) / 2**0.5  # to the plane z = x
+    assert bool(moved_local[o]) and slope_distance < 0.1 * S
+    with pytest.raises(ValueError, match="local_ratio"):
+        project_to_neighbour_planes(roof, k=16, threshold=3.0, local_ratio=-1.0)

@@ -33,7 +33,8 @@ def make_cfg(out: Path, fakes: Path, study: str = "stability"):
     cfg.study.axes = {
         "noise": {"key": "noise", "values": [0.005, 0.01, 0.03], "log": True},
         "outliers": {"key": "outliers", "values": [0.0, 0.1]},
-        "views": {"key": "dss.views", "values": [2, 3], "default": 2, "knee": True, "table": {"methods": ["dss_l0"]}},
+        "views": {"key": "dss.views", "values": [2, 3], "default": 2, "knee": True, "table": {"methods": ["dss_l0"]},
+                  "labels": ["two", "three"], "label_name": "n_views"},
     }
     return cfg
 
@@ -94,7 +95,10 @@ def test_crash_is_a_failure_at_every_value_and_onset(sweep):
     assert all(s["fake_crash"]["failure_rate"] == 1.0 for s in ax["stats"])
     assert ax["onset"]["fake_crash"] == 0.005 and ax["knee"] == {}  # no knee on a non-budget axis
     views = _axis(sweep["res"], "views")
-    assert views["knee"]["dss_l0"] in (2, 3)
+    # labels name the values in the results: the knee, the table header
+    assert views["values"] == [2, 3] and views["labels"] == ["two", "three"]
+    assert views["knee"]["dss_l0"] in ("two", "three")
+    assert "| n_views=two | n_views=three |" in (sweep["out"] / "sweep.md").read_text()
     md = (sweep["out"] / "sweep.md").read_text()
     assert "1/1 failed**: crash" in md
 
@@ -141,6 +145,9 @@ def test_unknown_axis_and_key_are_refused(tmp_path, fakes):
     cfg.study.axes = {"bad": {"key": "views", "values": [1]}}
     with pytest.raises(ValueError, match="not a dss-denoise-table setting"):
         sw.run(cfg)
+    cfg.study.axes = {"bad": {"key": "dss.views", "values": [1, 2], "labels": ["one"]}}
+    with pytest.raises(ValueError, match="1 labels for 2 values"):
+        sw.run(cfg)
 
 
 def test_declared_dss_defaults_are_never_passed(fakes, tmp_path):
@@ -168,13 +175,18 @@ def test_knee_and_onset_helpers():
 
 
 def test_shipped_studies_compose():
-    for study in ("stability", "budget"):
+    repo = CONF_DIR.parent
+    for study in ("stability", "budget", "width"):
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose("sweep", overrides=[f"study={study}"])
         base = sw.base_table(cfg.study.table, cfg.table)
         pts = sw.axis_points(cfg.study, list(cfg.study.axes), base)
         assert len(pts) == sum(len(a["values"]) for a in cfg.study.axes.values())
         dt.method_list(pts[0]["table"])  # every method name is known
+        for p in pts:  # model files named by an axis ship with the repository
+            for o in p["table"].dss_overrides:
+                if o.startswith("reference.model="):
+                    assert (repo / o.split("=", 1)[1]).is_file(), o
 
 
 def test_seed_gives_another_draw_of_a_generated_shape():
