@@ -240,7 +240,9 @@ def plot_axis(ax_res: dict, path: Path, title: str) -> Path:
     axs[2].set_ylabel("wall time per run (s)")
     axs[2].set_yscale("log")
     for a in axs:
-        a.set_xlabel(ax_res["key"])
+        # a labelled axis (e.g. model files shown by width) is named by its label_name
+        labelled = ax_res.get("labels") not in (None, ax_res["values"])
+        a.set_xlabel(ax_res["key_name"] if labelled else ax_res["key"])
         if numeric and ax_res.get("log"):
             a.set_xscale("log")
         if not numeric:
