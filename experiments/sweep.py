@@ -160,6 +160,11 @@ def knee(values: list, stats: list[dict | None], tolerance: float) -> object | N
     return next(v for v, c in good if c <= best * (1 + tolerance))
 
 
+def _label(value, values: list, labels: list):
+    """The label shown for an axis value (None stays None: no onset, no knee)."""
+    return None if value is None else labels[values.index(value)]
+
+
 def _fmt(v, digits=4) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
@@ -172,7 +177,7 @@ def render_markdown(result: dict) -> str:
              "its input (Chamfer). CD x1e4, HD x1e3, P2M x1e4 (`paper` protocol); ratio = output CD / "
              "input CD, mean over cases; time = mean method wall time (s).", ""]
     for ax in result["axes"]:
-        name, methods, values = ax["axis"], ax["methods"], ax.get("labels") or ax["values"]
+        name, methods, values = ax["axis"], ax["methods"], ax["labels"]
         lines += [f"## {name}" + (f" ({ax['key']})" if ax["key"] != name else ""), "", f"![{name}]({name}.png)", "",
                   "| method | " + " | ".join(f"{ax['key_name']}={_fmt(v)}" for v in values) + " |",
                   "|---|" + "---|" * len(values)]
@@ -216,7 +221,7 @@ def plot_axis(ax_res: dict, path: Path, title: str) -> Path:
 
     from dss.io_utils import atomic_savefig
 
-    values, methods = ax_res.get("labels") or ax_res["values"], ax_res["methods"]
+    values, methods = ax_res["labels"], ax_res["methods"]
     numeric = all(isinstance(v, (int, float)) for v in values)
     xs = [float(v) for v in values] if numeric else list(range(len(values)))
     fig, axs = plt.subplots(1, 3, figsize=(15, 4.2))
@@ -296,13 +301,12 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         ax = study.axes[name]
         # labels: what the tables and charts show for each value (e.g. a model file's width)
         labels = list(ax.get("labels") or values)
-        to_label = {str(v): lab for v, lab in zip(values, labels)}
-        to_label["None"] = None  # no onset / no knee
         axes_res.append({"axis": name, "key": str(ax.key), "key_name": str(ax.get("label_name") or _key_name(str(ax.key))),
                          "log": bool(ax.get("log", False)), "values": values, "labels": labels, "methods": methods,
                          "stats": stats, "settings": [p["setting"] for p in pts],
-                         "onset": {m: to_label[str(first_failure(values, per[m]))] for m in methods},
-                         "knee": {m: to_label[str(knee(values, per[m], tol))] for m in methods} if ax.get("knee") else {}})
+                         "onset": {m: _label(first_failure(values, per[m]), values, labels) for m in methods},
+                         "knee": {m: _label(knee(values, per[m], tol), values, labels) for m in methods}
+                         if ax.get("knee") else {}})
     b = {k: base[k] for k in ("points", "noise", "outliers", "seed")}
     result = {"title": str(study.get("title", f"dss-sweep: {study.name}")), "study": str(study.name),
               "description": str(study.get("description", "")), "base": ", ".join(f"{k} {v}" for k, v in b.items()),
