@@ -28,6 +28,7 @@ __all__ = [
     "normalize_unit_diagonal",
     "add_gaussian_noise",
     "finite_rows",
+    "find_outliers",
 ]
 
 
@@ -262,3 +263,60 @@ def add_gaussian_noise(points, std_fraction: float, generator: torch.Generator |
         generator = torch.Generator().manual_seed(int(seed))
     noise = torch.randn(p.shape, generator=generator, dtype=torch.float32)
     return p + noise.to(p.device) * (std_fraction * bbox_diagonal(p))
+
+
+def find_outliers(points, k: int = 16, z_threshold: float = 8.0, ratio_threshold: float = 3.0,
+                  iterations: int = 3) -> torch.Tensor:
+    """Points that do not sample the surface the others sample: (N,) bool, True = outlier.
+
+    Each point's spacing ``d_i`` is its mean distance to its ``k`` nearest neighbours. A point is
+    an outlier when either test holds:
+
+    * global: ``d_i`` lies more than ``z_threshold`` robust sigmas (1.4826 x MAD, at least 5% of
+      the median) above the median spacing. Uniform outliers in the bounding box are much sparser
+      than the surface samples, and where they are many they are each other's neighbours, so only
+      a global test sees them;
+    * local: ``d_i`` exceeds ``ratio_threshold`` x the median spacing of its neighbours. An
+      isolated point off the surface has surface points as neighbours, whose spacing is small.
+
+    Flagged points are taken out and both tests re-run (``iterations`` rounds at most), because
+    an outlier next to another outlier only stands out once its companion is gone. Scale-free
+    (only ratios of distances). Measured by ``python -m experiments.outlier_study`` (kangaroo and 6
+    generated shapes, results/outliers/): with 1-10% uniform outliers in the bounding box at 10K
+    points and 1% noise, 85-86% of the outliers more than 3 noise sigmas off the surface are found
+    (53-57% of all: the rest lie among the noisy samples) and at most 0.1% of the inliers go;
+    without outliers at most 0.2% of the points go at 1% noise, 0.6% at 2%, 0.1% at 0.3% / 100K
+    points, all from the noise tail.
+
+    Limitation: the global test assumes one sampling density. A scan whose density varies by
+    more than about 2x loses its sparsest parts: switch the removal off for such input.
+
+    Args:
+        points: (N, 3) tensor or array.
+        k: neighbours per point (N must exceed k + 1, else nothing is flagged).
+        z_threshold, ratio_threshold: the two tests' thresholds (> 0).
+        iterations: rounds of flag-and-remove (>= 1).
+    """
+    from .knn import knn
+
+    if not (z_threshold > 0 and ratio_threshold > 0):
+        raise ValueError(f"outlier thresholds must be > 0, got z {z_threshold}, ratio {ratio_threshold}")
+    if int(k) < 1 or int(iterations) < 1:
+        raise ValueError(f"outlier k and iterations must be >= 1, got k {k}, iterations {iterations}")
+    p = _as_tensor(points).detach().double()
+    outlier = torch.zeros(len(p), dtype=torch.bool)
+    for _ in range(int(iterations)):
+        idx = (~outlier).nonzero()[:, 0]
+        if len(idx) <= int(k) + 1:
+            break
+        nb = knn(p[idx], int(k), exclude_self=True)
+        d = nb.dist.mean(1).cpu()
+        med = d.median()
+        if not med > 0:  # duplicated points: no spacing to compare against
+            break
+        sigma = torch.maximum(1.4826 * (d - med).abs().median(), 0.05 * med)
+        bad = ((d - med) / sigma > z_threshold) | (d > ratio_threshold * d[nb.idx.cpu()].median(1).values)
+        if not bad.any():
+            break
+        outlier[idx[bad]] = True
+    return outlier.to(_as_tensor(points).device)

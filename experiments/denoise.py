@@ -7,8 +7,10 @@
     dss-denoise noisy.ply reference.model=my.onnx    # any denoiser exported with dss-export
     dss-denoise noisy.ply clean=clean.ply mesh=gt.ply   # ground truth: metrics in both protocols
 
-The noisy cloud (normals estimated when missing; rows with NaN/inf reported and dropped) is
-normalised to a unit bounding-box diagonal. Every cycle 12 views are sampled around it, the
+The noisy cloud (normals estimated when missing; rows with NaN/inf reported and dropped; points
+much sparser than the surface removed, ``outliers`` in ``conf/denoise.yaml``, and written to
+``outliers.ply``) is normalised to a unit bounding-box diagonal. Every cycle 4 views (the
+``budget`` preset; the paper: 12) are sampled around it, the
 *input* is rendered with the denoiser's training render setting (the model file's metadata, or
 ``conf/render/pairs.yaml`` for the filters), the renders are mapped through the reference
 generator (``conf/reference``), and DSS optimises normals to match them (the paper's local
@@ -103,6 +105,44 @@ def load_input(path: str | os.PathLike, nan_policy: str = "drop", normals_k: int
     report = {"path": str(path), "points": len(cloud), "rows_in_file": raw, "nan_rows_dropped": int(dropped),
               "normals": "from file" if had_normals and not recompute_normals else f"estimated (PCA, k={normals_k})"}
     return cloud, report
+
+
+def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tuple[Any, dict]:
+    """(inlier cloud, report): ``node`` is conf/denoise.yaml's ``outliers`` block. The removed
+    points are written to ``out/outliers.ply`` (nothing the user gave is lost) and counted.
+    ``normals_k``: the normals were estimated (not read), so re-estimate them without the outliers."""
+    from dss.pointcloud import (
+        PointCloud,
+        PointCloudError,
+        estimate_normals,
+        find_outliers,
+        save_ply,
+    )
+
+    params = {k: node.get(k) for k in ("k", "z_threshold", "ratio_threshold", "iterations")}
+    if not node.get("remove", True):
+        return cloud, {"removed": 0, "enabled": False, **params}
+    t0 = time.perf_counter()
+    bad = find_outliers(cloud.points, int(params["k"]), float(params["z_threshold"]),
+                        float(params["ratio_threshold"]), int(params["iterations"]))
+    n_bad = int(bad.sum())
+    report = {"enabled": True, "removed": n_bad, "fraction": n_bad / max(1, len(cloud)), **params,
+              "seconds": time.perf_counter() - t0, "file": None}
+    if n_bad == 0:
+        return cloud, report
+    kept = cloud.select(~bad)
+    if len(kept) < 16:
+        raise PointCloudError(f"outlier removal would leave {len(kept)} of {len(cloud)} points; "
+                              "set outliers.remove=false")
+    report["file"] = str(save_ply(out / "outliers.ply", PointCloud(cloud.points[bad], cloud.normals[bad])))
+    if normals_k:
+        kept = kept.with_normals(estimate_normals(kept.points, k=normals_k))
+    log.log(logging.WARNING if report["fraction"] > 0.1 else logging.INFO,
+            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; written to %s)%s",
+            n_bad, len(cloud), 100 * report["fraction"], report["file"],
+            ": a scan of varying density loses its sparse parts, set outliers.remove=false to keep them"
+            if report["fraction"] > 0.1 else "")
+    return kept, report
 
 
 def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0):
@@ -460,6 +500,9 @@ def run(cfg: DictConfig) -> dict:
     output = resolve_output(cfg, out, "denoised.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))
+    cloud_in = cloud  # the input as given: scored and drawn as "noisy input"
+    cloud, outlier_report = remove_outliers(cloud, cfg.get("outliers", {}), out,
+                                            None if input_report["normals"] == "from file" else int(cfg.normals.k))
     estimated = estimate_noise_level(cloud.points)
     hint = cfg.get("noise")
     if hint is not None and not (float(hint) > 0):
@@ -480,7 +523,7 @@ def run(cfg: DictConfig) -> dict:
     if cfg.get("image_size") and list(spec.image_size) != [int(cfg.image_size)] * 2:
         log.warning("image_size=%s ignored: the model fixes the render size to %s", cfg.image_size, list(spec.image_size))
     shading, shading_name = _shading_for(generator, spec, str(cfg.get("filter_shading", "sun")))
-    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud), int(cfg.seed))
+    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
     save_config(cfg, out)
     log.info("denoising %s (%d points, noise %s %.4g) with %s at %s px", input_path, len(cloud),
              "hint" if hint is not None else "estimated", noise, generator.describe(), list(spec.image_size))
@@ -494,22 +537,22 @@ def run(cfg: DictConfig) -> dict:
     save_ply(output, PointCloud(pts, nrm))
 
     protocols = list(cfg.metrics.protocols)
-    m_in = score(cloud.points.numpy(), clean, mesh, protocols)
+    m_in = score(cloud_in.points.numpy(), clean, mesh, protocols)
     m_out = score(pts.numpy(), clean, mesh, protocols)
     normal_error = None
     if mesh is not None:  # degrees to the closest ground-truth triangle's normal (input frame)
         from dss.metrics import normal_error_deg
 
-        normal_error = {"input_pca": normal_error_deg(cloud.points.numpy(), cloud.normals.numpy(), mesh),
+        normal_error = {"input_pca": normal_error_deg(cloud_in.points.numpy(), cloud_in.normals.numpy(), mesh),
                         "optimized": normal_error_deg(pts.numpy(), nrm_opt.numpy(), mesh),
                         "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
         from dss.metrics import chamfer_floor
 
-        floor = {pr: chamfer_floor(mesh, len(cloud), int(cfg.seed), pr, with_mesh=True).to_dict() for pr in protocols}
+        floor = {pr: chamfer_floor(mesh, len(cloud_in), int(cfg.seed), pr, with_mesh=True).to_dict() for pr in protocols}
 
-    rows = [(cloud.points, cloud.normals), (pts, nrm)]
+    rows = [(cloud_in.points, cloud_in.normals), (pts, nrm)]
     labels = ["noisy input", f"denoised ({generator.name})"]
     if clean is not None:
         from dss.pointcloud import estimate_normals
@@ -525,6 +568,7 @@ def run(cfg: DictConfig) -> dict:
         "example": is_example,
         "output": str(output),
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
+        "outliers": outlier_report,
         "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
         **by_noise,  # cycles, projection_weight, reg_cutoff, reg_dilation: the value used and why
         "budget": budget_note,

@@ -237,8 +237,11 @@ def _describe(d: dict) -> str:
         if isinstance(d.get(key), str):
             return d[key].split("\n")[0][:160]
     if "chamfer_input" in d and "chamfer_output" in d:
+        ne = d.get("normal_error_deg")
         return (f"{d.get('reference', '?')} references: Chamfer {_fmt(d['chamfer_input'])} -> "
-                f"{_fmt(d['chamfer_output'])} in {_fmt(d.get('wall_time_s'), 3)} s")
+                f"{_fmt(d['chamfer_output'])} in {_fmt(d.get('wall_time_s'), 3)} s"
+                + (f"; normal error {_fmt(ne['input'], 3)} -> {_fmt(ne['output'], 3)} deg ({d.get('shading')})"
+                   if isinstance(ne, dict) else ""))
     return ""
 
 

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -107,3 +109,43 @@ def test_bbox_normalize_noise():
     assert torch.equal(noisy, add_gaussian_noise(pts, 0.01, seed=3))
     with pytest.raises(ValueError, match=">= 0"):
         add_gaussian_noise(pts, -0.1)
+
+
+def _noisy_sphere(n: int, noise: float, seed: int) -> torch.Tensor:
+    """n points on the unit-radius sphere (Fibonacci lattice) plus Gaussian noise of std
+    ``noise`` x the bbox diagonal (2 sqrt 3)."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    phi, theta = torch.acos(1 - 2 * i / n), math.pi * (1 + 5**0.5) * i
+    p = torch.stack([phi.sin() * theta.cos(), phi.sin() * theta.sin(), phi.cos()], 1)
+    g = torch.Generator().manual_seed(seed)
+    return (p + noise * 2 * 3**0.5 * torch.randn(p.shape, generator=g, dtype=torch.float64)).float()
+
+
+def test_find_outliers_takes_the_sparse_gas_and_spares_the_surface():
+    from dss.pointcloud import find_outliers
+
+    surface = _noisy_sphere(6000, 0.01, seed=1)
+    g = torch.Generator().manual_seed(2)
+    gas = torch.rand(600, 3, generator=g) * 2.4 - 1.2  # 10% uniform in the bounding box
+    far = (gas.norm(dim=1) - 1).abs() > 0.15            # the ones clearly off the surface
+    gas = gas[far]
+    flagged = find_outliers(torch.cat([surface, gas]))
+    assert flagged[len(surface):].float().mean() > 0.9, "most far-off points must go"
+    assert flagged[: len(surface)].float().mean() < 0.002, "surface samples must stay"
+    # a single point hovering over the surface (11 noise sigmas out): the local test alone sees it
+    lone = torch.tensor([[0.0, 0.0, 1.4]])
+    flagged = find_outliers(torch.cat([surface, lone]), z_threshold=1e9)
+    assert bool(flagged[-1]) and int(flagged.sum()) <= 6
+    # the dense gas is invisible to the local test alone (its points are each other's neighbours)
+    assert find_outliers(torch.cat([surface, gas]), z_threshold=1e9)[len(surface):].float().mean() < 0.5
+
+
+def test_find_outliers_keeps_a_clean_or_small_cloud_and_checks_arguments():
+    from dss.pointcloud import find_outliers
+
+    clean = _noisy_sphere(4000, 0.0, seed=0)
+    assert int(find_outliers(clean).sum()) == 0
+    assert int(find_outliers(clean[:10], k=16).sum()) == 0  # too few points to judge: nothing flagged
+    for bad in ({"k": 0}, {"z_threshold": 0.0}, {"ratio_threshold": -1.0}, {"iterations": 0}):
+        with pytest.raises(ValueError, match="outlier"):
+            find_outliers(clean, **bad)
