@@ -25,6 +25,7 @@ input renders | references | final renders), ``loss.png`` + ``loss.json``, ``met
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import os
@@ -119,7 +120,10 @@ def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tup
         save_ply,
     )
 
-    params = {k: node.get(k) for k in ("k", "z_threshold", "ratio_threshold", "iterations")}
+    # find_outliers' own defaults for the keys a config leaves out
+    defaults = inspect.signature(find_outliers).parameters
+    params = {k: defaults[k].default for k in ("k", "z_threshold", "ratio_threshold", "iterations")}
+    params.update({k: node[k] for k in params if node.get(k) is not None})
     if not node.get("remove", True):
         return cloud, {"removed": 0, "enabled": False, **params}
     t0 = time.perf_counter()
