@@ -504,13 +504,13 @@ def run(cfg: DictConfig) -> dict:
     output = resolve_output(cfg, out, "denoised.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))
+    hint = cfg.get("noise")
+    if hint is not None and not (float(hint) > 0):
+        raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
     cloud_in = cloud  # the input as given: scored and drawn as "noisy input"
     cloud, outlier_report = remove_outliers(cloud, cfg.get("outliers", {}), out,
                                             None if input_report["normals"] == "from file" else int(cfg.normals.k))
     estimated = estimate_noise_level(cloud.points)
-    hint = cfg.get("noise")
-    if hint is not None and not (float(hint) > 0):
-        raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
     noise = float(hint) if hint is not None else estimated
     generator, model_note = make_reference(cfg, noise)
     if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
