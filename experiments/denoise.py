@@ -25,7 +25,6 @@ input renders | references | final renders), ``loss.png`` + ``loss.json``, ``met
 
 from __future__ import annotations
 
-import inspect
 import logging
 import math
 import os
@@ -120,15 +119,12 @@ def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tup
         save_ply,
     )
 
-    # find_outliers' own defaults for the keys a config leaves out
-    defaults = inspect.signature(find_outliers).parameters
-    params = {k: defaults[k].default for k in ("k", "z_threshold", "ratio_threshold", "iterations")}
-    params.update({k: node[k] for k in params if node.get(k) is not None})
+    # keys a config leaves out take find_outliers' defaults
+    params = {k: node[k] for k in ("k", "z_threshold", "ratio_threshold", "iterations") if node.get(k) is not None}
     if not node.get("remove", True):
         return cloud, {"removed": 0, "enabled": False, **params}
     t0 = time.perf_counter()
-    bad = find_outliers(cloud.points, int(params["k"]), float(params["z_threshold"]),
-                        float(params["ratio_threshold"]), int(params["iterations"]))
+    bad = find_outliers(cloud.points, **params)
     n_bad = int(bad.sum())
     report = {"enabled": True, "removed": n_bad, "fraction": n_bad / max(1, len(cloud)), **params,
               "seconds": time.perf_counter() - t0, "file": None}

@@ -1,5 +1,3 @@
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -112,13 +110,8 @@ def test_bbox_normalize_noise():
 
 
 def _noisy_sphere(n: int, noise: float, seed: int) -> torch.Tensor:
-    """n points on the unit-radius sphere (Fibonacci lattice) plus Gaussian noise of std
-    ``noise`` x the bbox diagonal (2 sqrt 3)."""
-    i = torch.arange(n, dtype=torch.float64) + 0.5
-    phi, theta = torch.acos(1 - 2 * i / n), math.pi * (1 + 5**0.5) * i
-    p = torch.stack([phi.sin() * theta.cos(), phi.sin() * theta.sin(), phi.cos()], 1)
-    g = torch.Generator().manual_seed(seed)
-    return (p + noise * 2 * 3**0.5 * torch.randn(p.shape, generator=g, dtype=torch.float64)).float()
+    """n points on the unit sphere plus Gaussian noise of std ``noise`` x the bbox diagonal."""
+    return add_gaussian_noise(sphere_points(n)[0], noise, seed=seed)
 
 
 def test_find_outliers_takes_the_sparse_gas_and_spares_the_surface():
