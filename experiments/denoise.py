@@ -9,10 +9,10 @@
 
 The noisy cloud (normals estimated when missing; rows with NaN/inf reported and dropped; points
 much sparser than the surface removed, ``outliers`` in ``conf/denoise.yaml``, and written to
-``outliers.ply``) is normalised to a unit bounding-box diagonal. Every cycle 4 views (the
+``outliers.ply``) is normalised to a unit bounding-box diagonal. Every cycle 2 views (the
 ``budget`` preset; the paper: 12) are sampled around it, the
 *input* is rendered with the denoiser's training render setting (the model file's metadata, or
-``conf/render/pairs.yaml`` for the filters), the renders are mapped through the reference
+``conf/render/pairs.yaml`` at the budget's 64 px for the filters), the renders are mapped through the reference
 generator (``conf/reference``), and DSS optimises normals to match them (the paper's local
 schedule, T_n = 19 normal steps per cycle; up to 16 cycles, ``cycles_by_noise`` for ``auto``) while
 the projection term moves the
@@ -230,8 +230,8 @@ def resolve_neighbourhood(cfg: DictConfig, n_points: int, cutoff_note: dict | No
 
 def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = None) -> dict:
     """Apply the ``budget`` preset (``default`` | ``fast`` | ``auto``: ``fast`` for inputs of more
-    than ``budget_fast_above`` points): ``cfg.views`` when it is null, and the preset's
-    ``cycles_scale`` on cycles that came from ``cycles_by_noise`` (an explicit
+    than ``budget_fast_above`` points): ``cfg.views`` when it is null, the filters' render size
+    (``filter_image_size`` in the note) when ``cfg.image_size`` is null, and the preset's ``cycles_scale`` on cycles that came from ``cycles_by_noise`` (an explicit
     ``optimizer.cycles`` is kept). Returns what was chosen and why (for metrics.json)."""
     setting = str(cfg.get("budget", "default"))
     presets = cfg.get("budgets") or {}
@@ -250,6 +250,9 @@ def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = No
         note["views"] = int(preset.views)
     else:
         note["views"] = f"{int(cfg.views)} (given)"
+    if cfg.get("image_size") is None and preset.get("filter_image_size"):
+        # an image filter renders at any size; a model ignores it (it renders at its training size)
+        note["filter_image_size"] = int(preset.filter_image_size)
     scale = float(preset.get("cycles_scale", 1.0))
     if scale != 1.0 and cycles_note is not None and cycles_note.get("setting") == "auto":
         cfg.optimizer.cycles = max(1, int(round(int(cfg.optimizer.cycles) * scale)))
@@ -497,6 +500,9 @@ def run(cfg: DictConfig) -> dict:
     out = run_dir(cfg)
     input_path, clean_path, mesh_path, is_example = _example_defaults(cfg)
     # Everything that can be refused is checked before any work or any output file.
+    from experiments.wandb_log import check as check_wandb
+
+    check_wandb(cfg.get("wandb"))
     output = resolve_output(cfg, out, "denoised.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))
@@ -515,10 +521,11 @@ def run(cfg: DictConfig) -> dict:
     by_noise = resolve_all_by_noise(cfg, noise, len(cloud))
     budget_note = resolve_budget(cfg, len(cloud), by_noise["cycles"])
     base_spec = None
-    if cfg.get("image_size"):
+    size = cfg.get("image_size") or budget_note.get("filter_image_size")
+    if size:
         from data_prep.render_spec import load_render_spec
 
-        base_spec = load_render_spec(image_size=[int(cfg.image_size)] * 2)
+        base_spec = load_render_spec(image_size=[int(size)] * 2)
     spec, spec_source = generator.render_spec(base_spec)
     if cfg.get("image_size") and list(spec.image_size) != [int(cfg.image_size)] * 2:
         log.warning("image_size=%s ignored: the model fixes the render size to %s", cfg.image_size, list(spec.image_size))
@@ -585,6 +592,10 @@ def run(cfg: DictConfig) -> dict:
     }
     save_metrics(metrics, out)
     _log_summary(metrics)
+    from experiments.wandb_log import log_run
+
+    log_run(cfg.get("wandb"), out, OmegaConf.to_container(cfg, resolve=True), metrics, history,
+            [out / f for f in figures])
     return metrics
 
 

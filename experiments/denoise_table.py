@@ -4,8 +4,9 @@
     dss-denoise-table noise=0.003                     # the 0.3% table (its own out_dir)
     dss-denoise-table methods=[cgal_jet,dss_l0] 'dss_overrides=["optimizer.cycles=4"]'
 
-Cases (``cases`` + ``generated``): the Kangaroo mesh (``../shared/data``, skipped with the reason
-when absent) and the first ``generated.count`` shapes of the ``cpu`` dss-prep preset's *test*
+Cases (``cases`` + ``meshlab_samples`` + ``generated``): the Kangaroo mesh (``../shared/data``,
+skipped with the reason when absent), pymeshlab's sample meshes (bunny, cow, airplane, bone, face;
+``meshlab_samples=true``, where the ``baselines`` extra is installed) and the first ``generated.count`` shapes of the ``cpu`` dss-prep preset's *test*
 split in the plan's order, made exactly as dss-prep and ``experiments/make_example.py`` make them
 (the first is the shipped example: at 20K points and 1% noise its files are the shipped ones).
 Each case: ``points`` Poisson-disk samples of the mesh (the clean cloud, ground truth with the
@@ -126,9 +127,31 @@ def test_split_shapes(count: int, preset: str = "cpu") -> list[dict]:
              "resolution": pc.resolution, "noise_levels": list(pc.noise_levels)} for s in test[:count]]
 
 
+#: pymeshlab's sample meshes (its tests/sample_meshes folder): the issue's extra benchmark set
+MESHLAB_SAMPLES = {"bunny": "bunny.obj", "cow": "cow.obj", "airplane": "airplane.obj", "bone": "bone.ply",
+                   "face": "rangemaps/face000.ply"}
+
+
+def meshlab_sample_cases() -> list[dict]:
+    """``{name, mesh}`` cases for pymeshlab's sample meshes (the optional ``baselines`` extra);
+    a clear error when pymeshlab or its sample folder is missing."""
+    try:
+        import pymeshlab
+    except ImportError as e:
+        raise RuntimeError("meshlab_samples=true needs pymeshlab (pip install -e '.[baselines]')") from e
+    root = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes"
+    missing = [f for f in MESHLAB_SAMPLES.values() if not (root / f).is_file()]
+    if missing:
+        raise FileNotFoundError(f"meshlab_samples=true: {root} lacks {missing} (this pymeshlab build ships no samples)")
+    return [{"name": name, "mesh": str(root / f)} for name, f in MESHLAB_SAMPLES.items()]
+
+
 def case_list(cfg: DictConfig) -> list[dict]:
-    """The configured cases (``cases`` then the generated ones), validated, as plain dicts."""
+    """The configured cases (``cases``, pymeshlab's samples when ``meshlab_samples``, then the
+    generated ones), validated, as plain dicts."""
     cases = [dict(c) for c in _plain(cfg.get("cases"))]
+    if cfg.get("meshlab_samples", False):
+        cases += meshlab_sample_cases()
     gen = cfg.get("generated") or {}
     cases += test_split_shapes(int(gen.get("count", 0) or 0), str(gen.get("preset", "cpu")))
     seen = set()

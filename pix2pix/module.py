@@ -46,8 +46,8 @@ from ._io import atomic_write_bytes
 from .metrics import l1 as l1_metric
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .postprocess import background_snap_threshold, snap_background
 from .networks import PatchDiscriminator, ResNetGenerator
+from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
 

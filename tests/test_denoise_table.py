@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 import textwrap
 from pathlib import Path
 
@@ -200,6 +201,29 @@ def test_generated_cases_and_paths(tmp_path):
     assert labels[-3:] == ["dss_pix2pix", "dss_l0", "dss_identity"] and "cgal_jet" in labels
     req = dt._request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
+
+
+def test_meshlab_sample_cases(tmp_path, monkeypatch):
+    """meshlab_samples=true adds pymeshlab's five sample meshes after the configured cases; without
+    pymeshlab it is a clear error, not a silently smaller benchmark."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("denoise_table", ["meshlab_samples=true", "generated.count=1"])
+    try:
+        import pymeshlab  # noqa: F401
+    except ImportError:
+        with pytest.raises(RuntimeError, match="needs pymeshlab"):
+            dt.case_list(cfg)
+        return
+    names = [c["name"] for c in dt.case_list(cfg)]
+    assert names == ["kangaroo", "bunny", "cow", "airplane", "bone", "face", "superquadric-0026"]
+    bone = next(c for c in dt.case_list(cfg) if c["name"] == "bone")
+    meta = dt.prepare_case(bone, tmp_path / "bone", 2000, 0.01, seed=0)  # a real mesh file becomes a case
+    assert meta["status"] == "ready" and (tmp_path / "bone" / "noisy.ply").is_file()
+    import experiments.denoise_table as mod
+
+    monkeypatch.setitem(sys.modules, "pymeshlab", None)  # as if the extra were not installed
+    with pytest.raises(RuntimeError, match="needs pymeshlab"):
+        mod.meshlab_sample_cases()
 
 
 def test_markdown_marks_partial_means_and_worse_than_input():

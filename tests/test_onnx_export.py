@@ -67,6 +67,28 @@ def test_parity_dynamic_batch_height_width(exported, shape):
     assert onnx_parity(g, path, x) <= 1e-4
 
 
+def test_parity_on_real_dss_renders(exported):
+    """Parity on what the pipeline feeds the network: point-light DSS renders of a noisy cloud
+    (mostly black background, a lit object), in (B, C, H, W), at the model's render size."""
+    from data_prep.render_spec import load_render_spec
+    from data_prep.sampling import noisy_copy, poisson_disk
+    from data_prep.shapes import make_shape
+    from dss.pointcloud import estimate_normals, normalize_unit_diagonal
+    from dss.render import render
+    from experiments.reference_generators import SpecViewSampler
+
+    g, path = exported
+    mesh = make_shape("superquadric", seed=4, resolution=32)
+    pts, _, _ = normalize_unit_diagonal(torch.from_numpy(noisy_copy(poisson_disk(mesh, 3000, seed=4).points, 0.01, seed=5)))
+    spec = load_render_spec(image_size=[48, 48])
+    cams = SpecViewSampler(spec, views=3, seed=0).sample()
+    with torch.no_grad():
+        imgs = render(pts, estimate_normals(pts, k=12), cams, spec.render_settings(), shading=spec.point_light()).images
+    x = imgs.permute(0, 3, 1, 2).contiguous().numpy()
+    assert (x > 0).mean() > 0.05 and (x == 0).mean() > 0.3  # an object on a black background
+    assert onnx_parity(g, path, x) <= 1e-4
+
+
 def test_onnx_checker_and_dynamic_axes(exported):
     _, path = exported
     model = onnx.load(str(path))

@@ -347,3 +347,16 @@ def test_optuna_sweep_runs(pairs_root, tmp_path):
     best = OmegaConf.load(out / "optimization_results.yaml")
     assert "model.lr" in best.best_params and np.isfinite(best.best_value)
     assert sorted(p.name for p in out.iterdir() if p.is_dir() and p.name.isdigit()) == ["0", "1"]
+
+
+def test_bench_train_times_every_kind_of_preset(tmp_path):
+    """`python -m experiments.bench_train`: the paper preset (linear-decay schedule) is timed as
+    well as the constant-rate CPU presets, and the JSON holds a positive images/s for each."""
+    from experiments.bench_train import main as bench
+
+    out = tmp_path / "bench.json"
+    res = bench(["--presets", "tiny", "paper", "--threads", "1", "--warmup", "0", "--batches", "1",
+                 "--out", str(out)])
+    rows = json.loads(out.read_text())["results"]
+    assert [r["preset"] for r in rows] == ["tiny", "paper"] and res["results"] == rows
+    assert all(r["images_per_s"] and r["images_per_s"] > 0 and r["timed_batches"] == 1 for r in rows)

@@ -35,7 +35,10 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 OK_STATUSES = ("ok", "done", "success", "succeeded")
-TIME_KEYS = ("wall_s", "time_s", "runtime_s", "total_s", "elapsed_s", "seconds", "time")
+TIME_KEYS = ("wall_s", "time_s", "time_s.total", "runtime_s", "total_s", "elapsed_s", "seconds", "time")
+#: dotted-key components that mark a number as not the run's result (dss-denoise's metrics.json
+#: scores its input and the Chamfer floor next to its output)
+NOT_RESULT = ("input", "metrics_input", "floor", "chamfer_floor")
 #: default accuracy metrics, searched in this order (last dotted component, then preference)
 Y_CANDIDATES = (("chamfer", ("paper", "score")), ("p2m", ("score", "paper")))
 
@@ -156,11 +159,13 @@ def pick_metric_keys(rows: list[dict]) -> list[str]:
     num = _numeric_keys(rows)
     out = []
     for name, prefer in Y_CANDIDATES:
-        hits = [k for k in num if k.split(".")[-1] == name]
+        # a protocol's scale factor for a metric (``...scale_factors.p2m``) is not that metric
+        hits = [k for k in num if k.split(".")[-1] == name and "scale_factors" not in k.split(".")]
         if not hits:
             continue
         hits.sort(
             key=lambda k: (
+                any(c in NOT_RESULT for c in k.split(".")),
                 min([i for i, p in enumerate(prefer) if p in k.split(".")] or [9]),
                 len(k),
             )
