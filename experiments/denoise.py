@@ -44,6 +44,8 @@ from experiments.common import (
     save_config,
     save_metrics,
 )
+from experiments.wandb_log import check as check_wandb
+from experiments.wandb_log import log_run
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +109,15 @@ def load_input(path: str | os.PathLike, nan_policy: str = "drop", normals_k: int
     return cloud, report
 
 
+OUTLIER_KEYS = ("k", "z_threshold", "ratio_threshold", "iterations")
+
+
+def outlier_params(node) -> dict:
+    """``dss.pointcloud.find_outliers`` keyword arguments from an ``outliers`` config block; keys
+    it leaves out take find_outliers' defaults."""
+    return {k: node[k] for k in OUTLIER_KEYS if node.get(k) is not None}
+
+
 def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tuple[Any, dict]:
     """(inlier cloud, report): ``node`` is conf/denoise.yaml's ``outliers`` block. The removed
     points are written to ``out/outliers.ply`` (nothing the user gave is lost) and counted.
@@ -119,8 +130,7 @@ def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tup
         save_ply,
     )
 
-    # keys a config leaves out take find_outliers' defaults
-    params = {k: node[k] for k in ("k", "z_threshold", "ratio_threshold", "iterations") if node.get(k) is not None}
+    params = outlier_params(node)
     if not node.get("remove", True):
         return cloud, {"removed": 0, "enabled": False, **params}
     t0 = time.perf_counter()
@@ -500,8 +510,6 @@ def run(cfg: DictConfig) -> dict:
     out = run_dir(cfg)
     input_path, clean_path, mesh_path, is_example = _example_defaults(cfg)
     # Everything that can be refused is checked before any work or any output file.
-    from experiments.wandb_log import check as check_wandb
-
     check_wandb(cfg.get("wandb"))
     output = resolve_output(cfg, out, "denoised.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
@@ -592,10 +600,7 @@ def run(cfg: DictConfig) -> dict:
     }
     save_metrics(metrics, out)
     _log_summary(metrics)
-    from experiments.wandb_log import log_run
-
-    log_run(cfg.get("wandb"), out, OmegaConf.to_container(cfg, resolve=True), metrics, history,
-            [out / f for f in figures])
+    log_run(cfg, out, metrics, history, figures)
     return metrics
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import hydra
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from experiments.common import (
     optimization_report,
@@ -43,6 +43,8 @@ from experiments.denoise import (
     short_metrics,
     write_figures,
 )
+from experiments.wandb_log import check as check_wandb
+from experiments.wandb_log import log_run
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +75,6 @@ def run(cfg: DictConfig) -> dict:
     if is_example:
         clean_path = clean_path or str(EXAMPLE_DIR / "clean.ply")
         mesh_path = mesh_path or str(EXAMPLE_DIR / "mesh.ply")
-    from experiments.wandb_log import check as check_wandb
-
     check_wandb(cfg.get("wandb"))
     output = resolve_output(cfg, out, "filtered.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
@@ -141,10 +141,7 @@ def run(cfg: DictConfig) -> dict:
         "figures": figures,
     }
     save_metrics(metrics, out)
-    from experiments.wandb_log import log_run
-
-    log_run(cfg.get("wandb"), out, OmegaConf.to_container(cfg, resolve=True), metrics, history,
-            [out / f for f in figures], job_type="filter")
+    log_run(cfg, out, metrics, history, figures, job_type="filter")
     log.info("moved: Chamfer to the input %.3f x1e4 (paper protocol), normals %.1f deg (mean); %.1f s",
              moved["chamfer"], float(angle.mean()), metrics["time_s"]["total"])
     return metrics

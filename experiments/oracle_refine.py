@@ -47,7 +47,7 @@ def denoise_optimizer_defaults(noise: float, n_points: int) -> dict:
     return {**OmegaConf.to_container(cfg.optimizer, resolve=True), "views": int(cfg.budgets.default.views)}
 
 
-def normal_error_deg(points, normals, clean_points, clean_normals) -> float:
+def normal_error_to_points_deg(points, normals, clean_points, clean_normals) -> float:
     """Mean angle (degrees, sign-free) between each normal and the normal of the nearest clean point."""
     import torch
 
@@ -101,8 +101,8 @@ def run(clean_path: Path, noisy_path: Path, reference: str = "clean", cycles: in
     out = {"reference": reference, "clean": str(clean_path), "noisy": str(noisy_path), "optimizer": res.history["config"],
            "chamfer_input": curve[0]["chamfer"], "chamfer_output": evaluate(res.points, cp).chamfer,
            # how far the image term brings the normals toward the truth (nearest clean point's normal)
-           "normal_error_deg": {"input": normal_error_deg(npt, nn_, cp, cn),
-                                "output": normal_error_deg(res.points, res.normals, cp, cn)},
+           "normal_error_deg": {"input": normal_error_to_points_deg(npt, nn_, cp, cn),
+                                "output": normal_error_to_points_deg(res.points, res.normals, cp, cn)},
            "shading": "point light" if not isinstance(shading, str) else shading,
            "curve": curve, "wall_time_s": time.perf_counter() - t0, "protocol": "paper (Chamfer x1e4)"}
     return out

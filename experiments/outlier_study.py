@@ -125,6 +125,7 @@ def main(argv=None) -> int:
     from omegaconf import OmegaConf
 
     from dss.io_utils import atomic_write_json, atomic_write_text
+    from experiments.denoise import outlier_params
     from experiments.denoise_table import case_list
     from experiments.figures import command_line
 
@@ -133,8 +134,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "outliers" / "outlier_study.json")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    conf = OmegaConf.load(ROOT / "conf" / "denoise.yaml").outliers
-    params = {k: conf[k] for k in ("k", "z_threshold", "ratio_threshold", "iterations")}
+    params = outlier_params(OmegaConf.load(ROOT / "conf" / "denoise.yaml").outliers)
     table_cfg = OmegaConf.load(ROOT / "conf" / "denoise_table.yaml")
     table_cfg.generated.count = a.shapes
     rows = []

@@ -58,29 +58,29 @@ def check(node) -> bool:
     return wanted(node)
 
 
-def _scalars(d, prefix: str = "") -> dict[str, float]:
-    """Finite int/float leaves of a nested dict as ``{"a.b": value}`` (bools and strings dropped)."""
-    out: dict[str, float] = {}
-    for k, v in d.items():
-        key = f"{prefix}.{k}" if prefix else str(k)
-        if isinstance(v, dict):
-            out.update(_scalars(v, key))
-        elif isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
-            out[key] = v
-    return out
+def _scalars(d: dict) -> dict[str, float]:
+    """Finite int/float leaves of a nested dict as ``{"a.b": value}`` (bools, strings and lists dropped)."""
+    from experiments.baselines.aggregate import flatten
+
+    return {k: v for k, v in flatten(d).items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
 
 
-def log_run(node, out_dir: str | os.PathLike, config: dict, metrics: dict, history: dict | None = None,
-            figures: list[str | os.PathLike] = (), job_type: str = "denoise") -> Path | None:
-    """Write one W&B run into ``out_dir/wandb`` and return its run directory (None when not wanted).
+def log_run(cfg, out_dir: str | os.PathLike, metrics: dict, history: dict | None = None,
+            figures: list[str] = (), job_type: str = "denoise") -> Path | None:
+    """Write one W&B run of an app into ``out_dir/wandb`` and return its run directory (None when
+    not wanted).
 
     Args:
-        node: the app's ``wandb`` config block (see the module docstring).
-        config: the resolved app config (a plain dict).
+        cfg: the app's config; its ``wandb`` block (see the module docstring) decides, and the
+            whole resolved config is logged.
         metrics: the app's ``metrics.json`` content; its numeric leaves become the run summary.
         history: the optimiser's history (``step``, ``loss``, ``image_loss``, ``time``), logged per step.
-        figures: PNG files logged as images under their file stem.
+        figures: PNG file names in ``out_dir``, logged as images under their file stem.
     """
+    from omegaconf import OmegaConf
+
+    node = cfg.get("wandb")
     if not check(node):
         return None
     mode = str(node.get("mode", "offline"))
@@ -88,7 +88,8 @@ def log_run(node, out_dir: str | os.PathLike, config: dict, metrics: dict, histo
 
     out_dir = Path(out_dir)
     run = wandb.init(project=str(node.get("project", "dss-denoise")), name=out_dir.name, dir=str(out_dir),
-                     mode=mode, config=config, job_type=job_type, reinit="finish_previous")
+                     mode=mode, config=OmegaConf.to_container(cfg, resolve=True), job_type=job_type,
+                     reinit="finish_previous")
     try:
         if history:
             for i, step in enumerate(history.get("step", [])):
@@ -97,7 +98,8 @@ def log_run(node, out_dir: str | os.PathLike, config: dict, metrics: dict, histo
                 if row:
                     run.log(row, step=int(step))
         run.summary.update(_scalars(metrics))
-        images = {Path(f).stem: wandb.Image(str(f)) for f in figures if str(f).endswith(".png") and Path(f).is_file()}
+        pngs = [out_dir / f for f in figures if str(f).endswith(".png")]
+        images = {f.stem: wandb.Image(str(f)) for f in pngs if f.is_file()}
         if images:
             run.log(images)
         run_path = Path(run.dir).parent  # <out_dir>/wandb/<offline-run-...>/files -> the run directory

@@ -486,7 +486,7 @@ def test_wandb_setting():
     with pytest.raises(ValueError, match="wandb.log must be"):
         wanted(OmegaConf.create({"log": "sometimes"}))
     with pytest.raises(ValueError, match="wandb.mode must be"):
-        log_run(OmegaConf.create({"log": True, "mode": "cloud"}), ".", {}, {})
+        log_run(OmegaConf.create({"wandb": {"log": True, "mode": "cloud"}}), ".", {})
     with pytest.raises(ValueError, match="wandb.mode must be"):
         check(OmegaConf.create({"log": "auto", "mode": "cloud"}))  # caught before any work
 
