@@ -20,8 +20,12 @@ baseline of :mod:`experiments.baselines` (``preset_params(method, noise)``, run 
 image filter), each a ``python -m experiments.denoise`` subprocess with a time limit. A crash,
 hang or NaN output is a failure record; the table carries on.
 
-Metrics: :func:`dss.metrics.evaluate`, ``paper`` protocol (clean cloud's bbox diagonal = 1):
-CD x1e4, HD x1e3, P2M x1e4 (two-sided, PyTorch3D's definition), plus the method's wall time
+Metrics: :func:`dss.metrics.evaluate` under ``protocol``: ``paper`` (clean cloud's bbox diagonal
+= 1; ``noise`` is a fraction of the bbox diagonal, the DSS paper's levels 0.3%, 1%, 2%) or ``score``
+(ScoreDenoise / IterativePFN: farthest clean point at distance 1 from the bbox centre; ``noise`` is a
+fraction of that bounding-sphere radius, their levels 1%, 2%, 3%; each case's noise is converted to
+the bbox-diagonal fraction that the baselines' presets and dss-denoise's model choice expect, and
+recorded). CD x1e4, HD x1e3, P2M x1e4 (two-sided, PyTorch3D's definition), plus the method's wall time
 (baselines: the method call in its worker; DSS: the outlier removal and the optimisation, i.e. rendering, reference
 generation and updates, without start-up, file input and normal estimation).
 
@@ -60,7 +64,9 @@ __all__ = ["run", "main", "REPO_ROOT", "resolve_repo_path", "test_split_shapes",
            "render_markdown", "summarize"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-PROTOCOL = "paper"
+PROTOCOL = "paper"  # the default protocol; ``protocol=score`` switches metrics and noise unit
+#: the unit of ``noise`` under each protocol
+NOISE_UNIT = {"paper": "diag", "score": "radius"}
 METRIC_KEYS = ("chamfer", "hausdorff", "p2m")
 METRIC_NAMES = {"chamfer": "CD", "hausdorff": "HD", "p2m": "P2M"}
 # the two one-sided halves of CD: accuracy (output -> clean) and coverage (clean -> output)
@@ -164,21 +170,41 @@ def case_list(cfg: DictConfig) -> list[dict]:
     return cases
 
 
-def _level_index(noise: float, levels) -> int:
+def _level_index(noise: float, levels, unit: str = "diag") -> int:
     """dss-prep's noise-seed index of ``noise`` (its position among the preset's levels, so the
-    shipped example is reproduced); an unlisted level gets an index of its own."""
-    for i, lv in enumerate(levels):
-        if abs(float(lv) - noise) <= 1e-9 * max(1.0, noise):
-            return i
-    return 1000 + int(round(noise * 1e6))
+    shipped example is reproduced); an unlisted level (or any level in ``radius`` units) gets an
+    index of its own."""
+    if unit == "diag":
+        for i, lv in enumerate(levels):
+            if abs(float(lv) - noise) <= 1e-9 * max(1.0, noise):
+                return i
+    return (1000 if unit == "diag" else 2000) + int(round(noise * 1e6))
 
 
-def _make_case_arrays(case: dict, points: int, noise: float, seed: int, outliers: float = 0.0):
+def noise_as_diag_fraction(points: np.ndarray, noise: float, unit: str) -> float:
+    """``noise`` (a fraction of the bbox diagonal, ``unit="diag"``, or of the bounding-sphere
+    radius of the score protocol, ``unit="radius"``: the farthest point's distance from the bbox
+    centre) of the cloud ``points`` (N, 3), as a fraction of the bbox diagonal."""
+    if unit == "diag":
+        return float(noise)
+    if unit != "radius":
+        raise ValueError(f"noise unit must be 'diag' or 'radius', got {unit!r}")
+    p = np.asarray(points, np.float64)
+    lo, hi = p.min(0), p.max(0)
+    radius = float(np.sqrt((((p - 0.5 * (lo + hi)) ** 2).sum(1)).max()))
+    return float(noise) * radius / float(np.linalg.norm(hi - lo))
+
+
+def _make_case_arrays(case: dict, points: int, noise: float, seed: int, outliers: float = 0.0,
+                      unit: str = "diag"):
     """(mesh, clean Cloud (points, mesh normals), noisy (N, 3) float32, provenance dict).
 
     Generated shapes use dss-prep's seeds at ``seed`` 0 (the shipped example is reproduced); any
     other ``seed`` gives another sampling and noise draw of the same shape. ``outliers``: a
-    fraction of ``points`` added to the noisy cloud, uniform in the clean cloud's bounding box."""
+    fraction of ``points`` added to the noisy cloud, uniform in the clean cloud's bounding box.
+    ``unit``: ``noise`` is a fraction of the clean cloud's bbox diagonal (``diag``) or of its
+    bounding-sphere radius (``radius``, :func:`noise_as_diag_fraction`); provenance records the
+    diagonal fraction used (``noise_diag``)."""
     from data_prep.sampling import measured_noise_std, noisy_copy, poisson_disk
     from data_prep.shapes import make_shape
     from data_prep.shapes.meshing import Mesh
@@ -200,9 +226,10 @@ def _make_case_arrays(case: dict, points: int, noise: float, seed: int, outliers
         mesh, s = Mesh(np.asarray(v, np.float64), np.asarray(f, np.int64)), int(seed)
         src = {"mesh": str(resolve_repo_path(case["mesh"])), "seed": s}
     clean = poisson_disk(mesh, points, s)
-    ns = noise_seed(s, _level_index(noise, levels))
-    noisy = noisy_copy(clean.points, noise, ns)
-    src.update(noise_seed=ns, vertices=len(mesh.vertices), faces=len(mesh.faces),
+    ns = noise_seed(s, _level_index(noise, levels, unit))
+    noise_diag = noise_as_diag_fraction(clean.points, noise, unit)
+    noisy = noisy_copy(clean.points, noise_diag, ns)
+    src.update(noise_seed=ns, noise_diag=round(noise_diag, 8), vertices=len(mesh.vertices), faces=len(mesh.faces),
                measured_noise=round(measured_noise_std(clean.points, noisy), 6))
     if outliers > 0:
         n_out = int(round(outliers * points))
@@ -220,8 +247,9 @@ def _seed_mix(a: int, b: int) -> int:
 
 
 def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, overwrite: bool = False,
-                 outliers: float = 0.0) -> dict:
-    """Make (or reuse) ``root/{noisy,clean,mesh}.ply`` and ``root/case.json``; returns case.json.
+                 outliers: float = 0.0, unit: str = "diag") -> dict:
+    """Make (or reuse) ``root/{noisy,clean,mesh}.ply`` and ``root/case.json``; returns case.json,
+    whose ``noise_diag`` is the case's noise as a bbox-diagonal fraction (``unit``: of ``noise``).
 
     A missing mesh file returns ``{"status": "skipped", "reason": ...}`` (nothing written). An
     existing case made with other settings is refused unless ``overwrite`` (then it is remade
@@ -236,6 +264,8 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
            "seed": int(seed)}
     if outliers:  # only when used, so the cases of tables made before the option stay valid
         key["outliers"] = float(outliers)
+    if unit != "diag":  # likewise
+        key["noise_unit"] = unit
     if "mesh" in case:
         path = resolve_repo_path(case["mesh"])
         if not path.is_file():
@@ -254,7 +284,7 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
     prev = torch.get_num_threads()
     torch.set_num_threads(1)  # open3d's sample elimination and the noise are then reproducible
     try:
-        mesh, clean, noisy, src = _make_case_arrays(case, int(points), float(noise), int(seed), float(outliers))
+        mesh, clean, noisy, src = _make_case_arrays(case, int(points), float(noise), int(seed), float(outliers), unit)
     finally:
         torch.set_num_threads(prev)
     root.mkdir(parents=True, exist_ok=True)
@@ -262,18 +292,19 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
     write_ply(root / "clean.ply", clean.points, normals=clean.normals)
     write_ply(root / "noisy.ply", noisy)
     meta = {"name": case["name"], "status": "ready", "key": key, "source": src, "points": int(points),
-            "noise": float(noise), "seconds": round(time.perf_counter() - t0, 2),
+            "noise": float(noise), "noise_unit": unit, "noise_diag": src["noise_diag"],
+            "seconds": round(time.perf_counter() - t0, 2),
             "remade": meta_path.is_file()}
     atomic_write_json(meta_path, meta)
     return meta
 
 
 # ------------------------------------------------------------------------------ scoring
-def _score(pred: np.ndarray, clean: np.ndarray, mesh) -> dict:
-    """Paper-protocol metrics of ``pred`` (N, 3) against the case's clean cloud and mesh."""
+def _score(pred: np.ndarray, gt: dict) -> dict:
+    """Metrics of ``pred`` (N, 3) against the case's clean cloud and mesh under ``gt["protocol"]``."""
     from dss.metrics import evaluate
 
-    d = evaluate(pred, clean, mesh, PROTOCOL).to_dict()
+    d = evaluate(pred, gt["clean"], gt["mesh"], gt["protocol"]).to_dict()
     d.pop("normalization", None)
     return d
 
@@ -289,7 +320,7 @@ def _judge(rec: dict, pred: np.ndarray | None, gt: dict) -> dict:
         rec.update(status="nan", failed=True,
                    message=f"{int((~np.isfinite(pred)).any(1).sum())} of {len(pred)} output points are NaN/Inf")
         return rec
-    rec["metrics"] = _score(pred, gt["clean"], gt["mesh"])
+    rec["metrics"] = _score(pred, gt)
     cd, cd_in = rec["metrics"]["chamfer"], gt["input_chamfer"]
     if cd > cd_in:
         rec.update(status="worse_than_input", message=f"Chamfer x1e4 {cd:.4g} > input {cd_in:.4g}")
@@ -328,17 +359,39 @@ def method_list(cfg: DictConfig) -> list[str]:
     return names
 
 
+def _prefilter_outliers(noisy: np.ndarray) -> tuple[np.ndarray, dict]:
+    """``noisy`` (N, 3) without the points dss-denoise's outlier removal drops (the same
+    :func:`dss.pointcloud.find_outliers` parameters, conf/denoise.yaml ``outliers``), and a report."""
+    import torch
+
+    from dss.pointcloud import find_outliers
+    from experiments.denoise import outlier_params
+
+    params = outlier_params(OmegaConf.load(REPO_ROOT / "conf" / "denoise.yaml").outliers)
+    t0 = time.perf_counter()
+    bad = find_outliers(torch.from_numpy(np.ascontiguousarray(noisy, np.float32)), **params).numpy()
+    return noisy[~bad], {"removed": int(bad.sum()), "seconds": time.perf_counter() - t0, **params}
+
+
 def _run_baseline(spec: str, gt: dict, params: dict, limit: float,
-                  threads: int | None, out_ply: Path | None) -> dict:
-    """One baseline on one case through the subprocess runner; a JSON-ready record."""
-    noisy = gt["noisy"]
-    res = run_method(spec, noisy, params=params, time_limit=limit, clean=gt["clean"], protocol=PROTOCOL,
+                  threads: int | None, out_ply: Path | None, prefilter: bool = False) -> dict:
+    """One baseline on one case through the subprocess runner; a JSON-ready record.
+    ``prefilter``: the baseline gets the noisy cloud after dss-denoise's outlier removal (its time
+    is added to the method's; the record's ``prefilter`` says how many points went)."""
+    noisy, pre = gt["noisy"], None
+    if prefilter:
+        noisy, pre = _prefilter_outliers(noisy)
+    res = run_method(spec, noisy, params=params, time_limit=limit, clean=gt["clean"], protocol=gt["protocol"],
                      threads=threads)
     r = res.record
     rec = {"kind": "baseline", "spec": spec, "params": r.params, "resolved": r.resolved, "status": r.status,
            "failed": r.failed, "message": r.message, "time_s": r.wall_s, "total_s": r.total_s,
            "time_limit_s": limit, "n_out": r.n_out, "versions": r.versions, "signal": r.signal,
            "stderr_tail": r.stderr_tail[-1500:] if r.failed and r.status != "worse_than_input" else ""}
+    if pre is not None:
+        rec["prefilter"] = pre
+        if rec["time_s"] is not None:
+            rec["time_s"] += pre["seconds"]
     pts = res.points
     rec = _judge(rec, pts, gt)
     rec["output"] = _save_output(out_ply, pts) if rec.get("metrics") else None
@@ -425,10 +478,36 @@ def _request(label: str, cfg: DictConfig, noise: float) -> dict:
         if int(cfg.get("seed", 0)):  # another draw of the cases: DSS's own random views follow it
             ovr.append(f"seed={int(cfg.seed)}")
         # threads=null gives "...=None", which Hydra would read as a string
-        return {"kind": "dss", "overrides": [re.sub(r"=None$", "=null", str(o)) for o in ovr]}
+        req = {"kind": "dss", "overrides": [re.sub(r"=None$", "=null", str(o)) for o in ovr]}
+        model = shipped_model_for(req["overrides"], noise)
+        if model is not None:  # a retrained shipped model makes its stored records stale
+            req["model_sha256"] = file_sha256(model)[:16]
+        return req
     spec = str((cfg.custom_methods or {}).get(label, label))
     extra = (_plain(cfg.get("params")) or {}).get(label) or {}
-    return {"kind": "baseline", "spec": spec, "params": {**preset_params(spec, noise), **(extra or {})}}
+    req = {"kind": "baseline", "spec": spec, "params": {**preset_params(spec, noise), **(extra or {})}}
+    if cfg.get("baseline_outlier_removal", False):  # only when on: records made before stay valid
+        req["prefilter"] = "outliers"
+    return req
+
+
+def shipped_model_for(overrides: list[str], noise: float) -> Path | None:
+    """The shipped ONNX model a dss-denoise run with these overrides uses at ``noise`` (bbox
+    diagonal fraction): ``reference=onnx`` without an explicit ``reference.model``; else None."""
+    if "reference=onnx" not in overrides:
+        return None
+    given = [o for o in overrides if o.startswith("reference.model=")]
+    if given and given[-1].split("=", 1)[1] not in ("auto", "null"):
+        return None
+    from experiments.reference_generators import select_model
+
+    return Path(select_model(noise)[0])
+
+
+def file_sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _check_params(cfg: DictConfig, methods: list[str], noise: float) -> None:
@@ -459,7 +538,7 @@ def _read_json(path: Path) -> dict | None:
 def _reference_record(kind: str, case: str, pts: np.ndarray, gt: dict, extra: dict | None = None) -> dict:
     """The ``input`` (noisy cloud) or ``floor`` (second clean sampling) row of a case."""
     return {"case": case, "method": kind, "kind": kind, "status": "reference", "failed": False, "message": "",
-            "params": extra or {}, "metrics": _score(pts, gt["clean"], gt["mesh"]), "time_s": None, "n_out": len(pts)}
+            "params": extra or {}, "metrics": _score(pts, gt), "time_s": None, "n_out": len(pts)}
 
 
 # ------------------------------------------------------------------------------ the table
@@ -560,12 +639,16 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
         if r["complete"] or r["kind"] in ("input", "floor"):
             lines.append(f"| {labels.get(r['method'], r['method'])} | {_fmt(r['mean'].get(HALF_KEYS[0]))} | "
                          f"{_fmt(r['mean'].get(HALF_KEYS[1]))} |")
-    lines += ["", "## Cases", "", "| case | source | points | noise | measured noise | status |", "|---|---|---|---|---|---|"]
+    lines += ["", "## Cases", "", "noise: the configured level (its unit in the title); noise (x diag): the same as a fraction "
+              "of the clean bbox diagonal (what the baselines' presets and dss-denoise were given); measured noise: "
+              "std of the noisy - clean offsets per axis, x diag.", "",
+              "| case | source | points | noise | noise (x diag) | measured noise | status |", "|---|---|---|---|---|---|---|"]
     for c in case_info:
         src = c.get("source") or c.get("key", {}).get("case", {})
         src_s = src.get("mesh") or f"{src.get('family')} #{src.get('index')} (shape seed {src.get('shape_seed')})"
         st = "skipped: " + c["reason"] if c["status"] == "skipped" else "ok"
         lines.append(f"| {c['name']} | {src_s} | {c['key']['points']} | {c['key']['noise']:g} | "
+                     f"{_fmt(c.get('noise_diag', c['key']['noise']))} | "
                      f"{_fmt((c.get('source') or {}).get('measured_noise'))} | {st} |")
     fails = [(c, r["method"], r["cases"][c]) for r in rows for c in cases
              if r["cases"][c]["status"] not in SCORED]
@@ -576,8 +659,8 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
     return "\n".join(lines) + "\n"
 
 
-def plot_accuracy_vs_time(rows: list[dict], path: Path, title: str) -> Path | None:
-    """Mean CD and mean P2M (x1e4, paper) against mean wall time per method (complete rows), the
+def plot_accuracy_vs_time(rows: list[dict], path: Path, title: str, protocol: str = PROTOCOL) -> Path | None:
+    """Mean CD and mean P2M (x1e4, ``protocol``) against mean wall time per method (complete rows), the
     Pareto front (lower time and error) marked, the input and the floor as horizontal lines."""
     import matplotlib
 
@@ -608,7 +691,7 @@ def plot_accuracy_vs_time(rows: list[dict], path: Path, title: str) -> Path | No
         if times and min(times) > 0 and max(times) / min(times) > 20:
             ax.set_xscale("log")
         ax.set_xlabel("mean wall time per case (s)")
-        ax.set_ylabel(f"mean {METRIC_NAMES[k]} x1e4 ({PROTOCOL} protocol)")
+        ax.set_ylabel(f"mean {METRIC_NAMES[k]} x1e4 ({protocol} protocol)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(title + "  (red: DSS; circled: Pareto front; failed methods not shown)", fontsize=9)
@@ -656,8 +739,13 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
     t0 = time.perf_counter()
     noise, points, seed = float(cfg.noise), int(cfg.points), int(cfg.seed)
     outliers = float(cfg.get("outliers", 0.0) or 0.0)
+    protocol = str(cfg.get("protocol", PROTOCOL))
+    if protocol not in NOISE_UNIT:
+        raise ValueError(f"protocol must be one of {sorted(NOISE_UNIT)}, got {protocol!r}")
+    unit = NOISE_UNIT[protocol]
+    unit_name = {"diag": "bbox diagonal", "radius": "bounding-sphere radius"}[unit]
     if not (noise > 0 and math.isfinite(noise)):
-        raise ValueError(f"noise must be a positive fraction of the bbox diagonal, got {cfg.noise}")
+        raise ValueError(f"noise must be a positive fraction of the {unit_name}, got {cfg.noise}")
     if not (0.0 <= outliers <= 1.0):
         raise ValueError(f"outliers must be a fraction of points in [0, 1], got {cfg.outliers}")
     if points < 32:
@@ -677,7 +765,7 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         name = case["name"]
         cdir, rdir = out / "cases" / _safe(name), out / "records" / _safe(name)
         bar.set_description(f"{name}: preparing")
-        meta = prepare_case(case, cdir, points, noise, seed, overwrite, outliers)
+        meta = prepare_case(case, cdir, points, noise, seed, overwrite, outliers, unit)
         case_info.append(meta)
         if meta["status"] == "skipped":
             log.warning("case %s skipped: %s", name, meta["reason"])
@@ -690,12 +778,14 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
                 f.unlink()
         rdir.mkdir(parents=True, exist_ok=True)
         gt = _load_gt(cdir)
+        gt["protocol"] = protocol
+        case_noise = float(meta.get("noise_diag", noise))  # what presets and dss-denoise expect
         refs = _reference_rows(name, gt, rdir, bool(cfg.get("floor", True)), seed, overwrite)
         records += refs
         gt["input_chamfer"] = refs[0]["metrics"]["chamfer"]
         for label in methods:
             path = rdir / f"{_safe(label)}.json"
-            req = _request(label, cfg, noise)
+            req = _request(label, cfg, case_noise)
             limit = float((cfg.time_limits or {}).get(label, cfg.time_limit_s))
             old = None if overwrite else _read_json(path)
             if _reusable(old, req, limit):
@@ -705,10 +795,11 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
             bar.set_description(f"{name}: {label}")
             out_ply = out / "outputs" / _safe(name) / f"{_safe(label)}.ply" if cfg.get("save_outputs", True) else None
             if label in dss_methods:
-                rec = _run_dss(req["overrides"], cdir, gt, noise, limit, threads,
+                rec = _run_dss(req["overrides"], cdir, gt, case_noise, limit, threads,
                                out / "runs" / _safe(name) / _safe(label), out_ply)
             else:
-                rec = _run_baseline(req["spec"], gt, req["params"], limit, threads, out_ply)
+                rec = _run_baseline(req["spec"], gt, req["params"], limit, threads, out_ply,
+                                    prefilter=req.get("prefilter") == "outliers")
             rec = {"case": name, "method": label, **rec, "request": req}
             atomic_write_json(path, rec)
             cd = (rec.get("metrics") or {}).get("chamfer")
@@ -720,9 +811,11 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
 
     ready = [c["name"] for c in case_info if c["status"] != "skipped"]
     rows = summarize(records, methods, ready)
-    title = f"Point cloud denoising: {points} points, noise {noise:g} x bbox diagonal" + (
-        f", {outliers:.3g} x {points} uniform outliers" if outliers else "") + (f", seed {seed}" if seed else "")
-    notes = [f"`{PROTOCOL}` protocol (dss/metrics.py): clean cloud centred, bbox diagonal 1; CD x1e4, HD x1e3 "
+    title = f"Point cloud denoising: {points} points, noise {noise:g} x {unit_name}" + (
+        f", {outliers:.3g} x {points} uniform outliers" if outliers else "") + (f", seed {seed}" if seed else "") + (
+        ", baselines after DSS's outlier removal" if cfg.get("baseline_outlier_removal", False) else "")
+    scale = {"paper": "bbox diagonal 1", "score": "farthest point at distance 1"}[protocol]
+    notes = [f"`{protocol}` protocol (dss/metrics.py): clean cloud's bbox centred, {scale}; CD x1e4, HD x1e3 "
              "(symmetric, not squared), P2M x1e4 (two-sided, PyTorch3D's point_mesh_face_distance, exact "
              "triangle distances); lower is better",
              "time: baselines: the method call in its worker process; DSS: the outlier removal and the optimisation (rendering, "
@@ -730,13 +823,13 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
              f"threads per method: {threads or 'default'}; time limit {cfg.time_limit_s:g} s per run"
              + (f" (per method: {dict(cfg.time_limits)})" if cfg.time_limits else ""),
              f"DSS overrides: {_plain(cfg.get('dss_overrides'))}; baseline parameters: "
-             "preset_params(method, noise) (+ params), see table.json"]
+             "preset_params(method, case noise as a bbox-diagonal fraction) (+ params), see table.json"]
     md = render_markdown(rows, case_info, title, notes)
     files = {"markdown": "table.md", "json": "table.json", "readme": "README.md", "config": "config.yaml"}
-    if rows and plot_accuracy_vs_time(rows, out / "accuracy_vs_time.png", title):
+    if rows and plot_accuracy_vs_time(rows, out / "accuracy_vs_time.png", title, protocol):
         files["chart"] = "accuracy_vs_time.png"
     elapsed = time.perf_counter() - t0
-    result = {"title": title, "protocol": PROTOCOL, "points": points, "noise": noise, "seed": seed,
+    result = {"title": title, "protocol": protocol, "noise_unit": unit, "points": points, "noise": noise, "seed": seed,
               "outliers": outliers,
               "methods": methods, "cases": case_info, "rows": rows, "records": records, "versions": _versions(),
               "config": OmegaConf.to_container(cfg, resolve=True), "time_s": elapsed, "files": files,

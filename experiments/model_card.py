@@ -52,7 +52,9 @@ def card(run_dir: Path, evaluation: dict | None = None) -> str:
         f"# Denoiser model card: {cfg.get('task_name')}",
         "",
         f"Pix2Pix ResNet generator (`{cfg.model.get('name')}`: ngf {g.ngf}, {g.n_blocks} residual blocks, "
-        f"{'residual' if g.get('residual') else 'direct'} prediction, pixel-wise normalisation, no final tanh) "
+        f"{'residual' if g.get('residual') else 'direct'} prediction, pixel-wise normalisation, no final tanh"
+        + (", a coverage head that outputs exact 0 where it predicts no clean surface" if g.get("coverage_head") else "")
+        + ") "
         f"with a 70x70 PatchGAN, LSGAN + L1. Trained for one noise level: Gaussian std "
         f"{noise} of the bounding-box diagonal.",
         "",
@@ -65,6 +67,8 @@ def card(run_dir: Path, evaluation: dict | None = None) -> str:
         f"- best checkpoint: `{Path(m.get('best_ckpt') or '').name}`",
         (f"- resumed from `{_short(m['resumed_from'], 3)}`: the time above is this run's only (the Lightning timer "
          "counted the earlier run's time against trainer.max_time)") if m.get("resumed_from") else None,
+        (f"- generator warm-started from `{_short(cfg.model.init_from, 3)}` (the time above is this run's only; "
+         "that model's training comes on top)") if cfg.model.get("init_from") else None,
         "",
         "## Validation (best checkpoint, pixels covered in either render)",
         "| | output vs clean | noisy input vs clean |",

@@ -261,7 +261,8 @@ def build(results: Path) -> str:
         return [(p, d) for p in paths if (d := _load(p)) is not None]
 
     tables = sorted(loaded(p for p in results.rglob("table.json") if not in_sweep(p)),
-                    key=lambda pd: (pd[1].get("noise", 0), pd[1].get("points", 0), pd[0].as_posix()))
+                    key=lambda pd: (pd[1].get("protocol", "paper") != "paper", pd[1].get("noise", 0),
+                                    pd[1].get("points", 0), pd[0].as_posix()))  # paper's tables first
     runtimes = loaded(sorted(p for p in results.rglob("runtime_table*.json") if not in_sweep(p)))
     deforms = loaded(sorted(results.glob("deform/*/metrics.json")))
     used = {p for p, _ in tables + runtimes + deforms} | set(sweeps)

@@ -2,7 +2,7 @@
 
     dss-sweep                                  # study=stability: noise, density, outliers, seeds
     dss-sweep study=budget                     # DSS's views, cycles, points, image size
-    dss-sweep 'axes_to_run=[noise]' table.generated.count=0   # one axis, kangaroo only
+    dss-sweep 'axes_to_run=[noise]' +table.generated.count=0   # one axis, kangaroo only (+: table is open)
 
 A *study* (``conf/study/<name>.yaml``) is a base table (``conf/denoise_table.yaml`` with the
 study's ``table`` settings, then the command's ``table`` settings on top) and *axes*. An axis

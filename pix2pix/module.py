@@ -9,6 +9,18 @@ Manual optimisation of a generator G and an optional conditional PatchGAN discri
 
 With ``discriminator=None`` (or ``lambda_gan=0``) it trains G with L1 alone.
 
+A generator with a coverage head (``ResNetGenerator(coverage_head=True)``) is trained on its gated
+output (what it returns at inference) plus ``lambda_coverage`` x the binary cross-entropy of its
+coverage logit against the clean render's coverage (a pixel is covered when any channel is
+non-zero: the renders' background is exactly 0). Where the clean render is covered but the gate
+is shut, the L1 term sees the ungated image, so the image is trained wherever the gate may open.
+Validation adds ``val/coverage_acc`` (gate vs clean coverage, over the pixels covered in either
+render).
+
+``init_from``: a checkpoint (``.ckpt``) or an exported ONNX denoiser (``.onnx``) whose generator
+weights start this one (warm start: fine-tune a shipped model, e.g. with a coverage head added);
+parameters it lacks (the new head) keep their initialisation, and a shape mismatch is an error.
+
 Note on step counts: under manual optimisation Lightning's ``global_step`` counts optimizer
 steps, so with a discriminator each batch advances it by 2 (``trainer.max_steps`` likewise).
 
@@ -51,7 +63,8 @@ from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "CHECKPOINT_KEY", "make_grid"]
+__all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "load_generator_weights", "covered",
+           "CHECKPOINT_KEY", "make_grid"]
 
 CHECKPOINT_KEY = "dss_pix2pix"
 METRIC_NAMES = ("l1", "smape", "psnr")
@@ -104,6 +117,8 @@ class Pix2PixModule(L.LightningModule):
         train_crop_size: the image size the model is trained at (recorded into exports).
         num_grid_images: images per validation grid.
         name: preset name (recorded into exports).
+        lambda_coverage: weight of the coverage head's cross-entropy (generators with one).
+        init_from: warm-start the generator's weights from this ``.ckpt`` or ``.onnx`` file.
     """
 
     def __init__(
@@ -121,6 +136,8 @@ class Pix2PixModule(L.LightningModule):
         train_crop_size: int | None = None,
         num_grid_images: int = 4,
         name: str = "custom",
+        lambda_coverage: float = 10.0,
+        init_from: str | None = None,
     ):
         super().__init__()
         if lr_schedule not in ("constant", "linear"):
@@ -135,6 +152,8 @@ class Pix2PixModule(L.LightningModule):
         self._val_sums: dict[str, torch.Tensor] = {}
         self._val_grid: tuple[torch.Tensor, ...] | None = None
         self._throughput = [0, 0.0]  # images, seconds in this epoch's training steps
+        if init_from:
+            self.warm_start = load_generator_weights(generator, init_from)
 
     @property
     def uses_gan(self) -> bool:
@@ -178,8 +197,14 @@ class Pix2PixModule(L.LightningModule):
         noisy, clean = batch["noisy"], batch["clean"]
         opts = self._opts()
         opt_g = opts[0]
-        fake = self.generator(noisy)
+        image, logit = _image_and_coverage(self.generator, noisy)
         logs: dict[str, torch.Tensor] = {}
+        if logit is None:
+            fake = l1_image = image
+        else:
+            fake = image * (logit > 0).to(image.dtype)  # the inference output
+            clean_cov = covered(clean)
+            l1_image = torch.where(clean_cov, image, fake)
         if self.uses_gan:
             opt_d = opts[1]
             self.toggle_optimizer(opt_d)
@@ -194,8 +219,12 @@ class Pix2PixModule(L.LightningModule):
             logs["train/loss_d"] = loss_d.detach()
 
         self.toggle_optimizer(opt_g)
-        loss_l1 = F.l1_loss(fake, clean)
+        loss_l1 = F.l1_loss(l1_image, clean)
         loss_g = self.hparams.lambda_l1 * loss_l1
+        if logit is not None:
+            loss_cov = F.binary_cross_entropy_with_logits(logit, clean_cov.to(logit.dtype))
+            loss_g = loss_g + self.hparams.lambda_coverage * loss_cov
+            logs["train/coverage_bce"] = loss_cov.detach()
         if self.uses_gan:
             pred = self.discriminator(self._d_input(noisy, fake))
             loss_gan = F.mse_loss(pred, torch.ones_like(pred))
@@ -241,7 +270,14 @@ class Pix2PixModule(L.LightningModule):
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         noisy, clean = batch["noisy"], batch["clean"]
         mask = batch.get("mask")
-        out = self.generator(noisy)
+        out, logit = _image_and_coverage(self.generator, noisy)
+        if logit is not None:
+            gate = logit > 0
+            out = out * gate.to(out.dtype)
+            either = covered(noisy) | covered(clean)
+            hit = (gate == covered(clean)) & either
+            self._accumulate("coverage_hits", hit.sum().to(torch.float64), 1.0)
+            self._accumulate("coverage_pixels", either.sum().to(torch.float64), 1.0)
         b = noisy.shape[0]
         # masked l1/smape pool pixels over the whole split: weight each batch by its pixel count
         npx = float(mask.sum()) if mask is not None else float(b * noisy.shape[2] * noisy.shape[3])
@@ -272,12 +308,15 @@ class Pix2PixModule(L.LightningModule):
         sums = {k: self.trainer.strategy.reduce(v, reduce_op="sum") for k, v in self._val_sums.items()}
         count = sums.pop("count").clamp_min(1)
         pixels = sums.pop("pixels").clamp_min(1)
+        cov = (sums.pop("coverage_hits", None), sums.pop("coverage_pixels", None))
         means = {k: float(v / (count if k.endswith(("psnr", "_full")) else pixels))
                  for k, v in sums.items()}
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
         means["l1_reduction"] = 1.0 - means["l1"] / max(means["noisy_l1"], 1e-12)
         means["psnr_gain"] = means["psnr"] - means["noisy_psnr"]
+        if cov[0] is not None:
+            means["coverage_acc"] = float(cov[0] / cov[1].clamp_min(1))
         self.log_dict({f"val/{k}": v for k, v in means.items()}, on_epoch=True, sync_dist=False)
         if not self.trainer.sanity_checking and self._val_grid is not None:
             self._save_grid()
@@ -319,6 +358,7 @@ class Pix2PixModule(L.LightningModule):
                               else None),
             "train_crop_size": self.hparams.train_crop_size,
             "data": dict(self.data_info),
+            "warm_start": getattr(self, "warm_start", None),
         }
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -335,8 +375,62 @@ class Pix2PixModule(L.LightningModule):
         info = ckpt[CHECKPOINT_KEY]
         gen = ResNetGenerator.from_config(info["generator"])
         disc = PatchDiscriminator.from_config(info["discriminator"]) if info.get("discriminator") else None
+        # init_from=None: the checkpoint holds the weights (the warm-start file may be gone)
         return cls.load_from_checkpoint(path, map_location=map_location, generator=gen,
-                                        discriminator=disc, weights_only=False)
+                                        discriminator=disc, weights_only=False, init_from=None)
+
+
+def covered(images: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) bool: pixels of the renders (B, C, H, W) that a surface covers (any channel
+    non-zero; the renders' background is exactly 0)."""
+    return images.abs().amax(dim=1, keepdim=True) > 0
+
+
+def _image_and_coverage(generator: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(ungated image, coverage logit or None) of any generator (one without a coverage head,
+    or another image-to-image network, gives (G(x), None))."""
+    if hasattr(generator, "forward_with_coverage"):
+        return generator.forward_with_coverage(x)
+    return generator(x), None
+
+
+def load_generator_weights(generator: nn.Module, path: str | Path) -> dict[str, Any]:
+    """Copy the generator weights stored in ``path`` (a training checkpoint ``.ckpt`` or an
+    exported ONNX denoiser ``.onnx``, whose initializers keep the parameter names) into
+    ``generator``. Only a coverage head the file's model lacks keeps its initialisation
+    (reported); any other missing tensor, a name the generator lacks or a shape mismatch raises
+    ValueError naming the file. Returns a report dict."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"init_from={path}: no such file")
+    if path.suffix == ".onnx":
+        import onnx
+        from onnx import numpy_helper
+
+        state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy())
+                 for i in onnx.load(str(path)).graph.initializer}
+        own = generator.state_dict()
+        state = {k: v for k, v in state.items() if k in own}  # graph constants are not parameters
+    else:
+        sd = _read_checkpoint(path)["state_dict"]
+        state = {k[len("generator."):]: v for k, v in sd.items() if k.startswith("generator.")}
+        own = generator.state_dict()
+    if not state:
+        raise ValueError(f"init_from={path}: no generator weights found in the file")
+    extra = sorted(set(state) - set(own))
+    bad = sorted(k for k in state if k in own and tuple(state[k].shape) != tuple(own[k].shape))
+    if extra or bad:
+        raise ValueError(f"init_from={path}: does not fit this generator (unknown {extra[:5]}, "
+                         f"shape mismatch {[(k, tuple(state[k].shape), tuple(own[k].shape)) for k in bad[:5]]})")
+    missing = sorted(set(own) - set(state))
+    lost = [k for k in missing if not k.startswith("coverage.")]  # only a new coverage head may be new
+    if lost:
+        raise ValueError(f"init_from={path}: {len(lost)} generator tensors are not in the file ({lost[:5]}); "
+                         "an ONNX export stores identical tensors once (e.g. untrained zero biases): "
+                         "warm-start from the training checkpoint (.ckpt) instead")
+    generator.load_state_dict(state, strict=False)
+    log.info("generator warm-started from %s (%d tensors; kept their own init: %s)", path, len(state), missing)
+    return {"path": str(path), "loaded": len(state), "kept_init": missing}
 
 
 def _read_checkpoint(path: str | Path, map_location: str = "cpu") -> dict[str, Any]:

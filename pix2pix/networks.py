@@ -81,6 +81,11 @@ def _checks_enabled() -> bool:
     return not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
 
 
+#: magnitude of the coverage logit's prior (the input's own coverage, +-1): large enough that an
+#: untrained head keeps it, small enough that the head overrides it within a few hundred steps
+COVERAGE_PRIOR = 2.0
+
+
 class ResNetGenerator(nn.Module):
     """ResNet image-to-image generator (Johnson et al. 2016 / pix2pix, as adapted by DSS).
 
@@ -100,6 +105,17 @@ class ResNetGenerator(nn.Module):
             gain 0.02, falls to 0.10 with gain 1.0). The CPU presets use 1.0 (standard Glorot).
         zero_init_head: zero the last convolution's weights so that a residual generator starts
             as the exact identity (the noisy baseline); default: ``residual``.
+        coverage_head: add a second 7x7 head that predicts, per pixel, whether the *clean*
+            surface covers it (a logit, :meth:`forward_with_coverage`); :meth:`forward` then
+            returns the image with every pixel the head calls uncovered set to exactly 0 (the
+            renders' black background). Why: SMAPE is 1 for any non-zero value over a zero
+            target, so the halo that noise spreads around the silhouette costs as much as a
+            wrong surface pixel unless the network can output an exact 0 there, which a
+            regression head never does. The logit is ``head(features) + COVERAGE_PRIOR x (+1 where
+            the input covers the pixel, -1 where it does not)``; the head starts at zero, so an
+            untrained coverage head keeps the input's coverage (an identity generator stays the
+            identity). The gate is a hard step: it passes no gradient to the logit, which is
+            trained by its own loss (``Pix2PixModule(lambda_coverage=...)``).
 
     Shapes: (B, in_channels, H, W) -> (B, out_channels, H, W) for H, W multiples of 4 (>= 8);
     other sizes raise ValueError. The output is unbounded (no tanh).
@@ -119,6 +135,7 @@ class ResNetGenerator(nn.Module):
         input_std: float = 0.5,
         init_gain: float = 0.02,
         zero_init_head: bool | None = None,
+        coverage_head: bool = False,
     ):
         super().__init__()
         if zero_init_head is None:
@@ -140,6 +157,7 @@ class ResNetGenerator(nn.Module):
             "input_std": float(input_std),
             "init_gain": float(init_gain),
             "zero_init_head": bool(zero_init_head),
+            "coverage_head": bool(coverage_head),
         }
         self.in_channels = in_channels
         self.residual = residual
@@ -153,10 +171,14 @@ class ResNetGenerator(nn.Module):
         self.up1 = Up(4 * ngf, 2 * ngf, norm_layer)
         self.up2 = Up(2 * ngf, ngf, norm_layer)
         self.head = Head(ngf, out_channels)
+        self.coverage = Head(ngf, 1) if coverage_head else None
         init_xavier(self, init_gain)
         if zero_init_head:
             # the correction starts at exactly 0 (output == input), whatever init_gain is
             nn.init.zeros_(self.head[1].weight)
+        if self.coverage is not None:  # start from the input's own coverage (the prior)
+            nn.init.zeros_(self.coverage[1].weight)
+            nn.init.zeros_(self.coverage[1].bias)
 
     def config(self) -> dict[str, Any]:
         """JSON-able constructor arguments (norm layer as import path + kwargs)."""
@@ -169,18 +191,31 @@ class ResNetGenerator(nn.Module):
         kwargs["norm_layer"] = build_norm(kwargs["norm_layer"])
         return cls(**kwargs)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward_with_coverage(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(image (B, out_channels, H, W) before the coverage gate, coverage logit (B, 1, H, W)
+        or None without a coverage head); a logit > 0 means "the clean surface covers it"."""
         if _checks_enabled():
             check_image_batch(x, self.in_channels, who=type(self).__name__)
         xn = (x - self.input_mean) / self.input_std
         y = self.stem(xn)
         y = self.down2(self.down1(y))
         y = self.blocks(y)
-        y = self.up2(self.up1(y))
-        y = self.head(y)
+        feats = self.up2(self.up1(y))
+        y = self.head(feats)
         if self.residual:
             y = y + xn
-        return y * self.input_std + self.input_mean
+        image = y * self.input_std + self.input_mean
+        if self.coverage is None:
+            return image, None
+        covered_in = (x.abs().amax(dim=1, keepdim=True) > 0).to(x.dtype)
+        logit = self.coverage(feats) + COVERAGE_PRIOR * (2.0 * covered_in - 1.0)
+        return image, logit
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        image, logit = self.forward_with_coverage(x)
+        if logit is None:
+            return image
+        return image * (logit > 0).to(image.dtype)
 
 
 class PatchDiscriminator(nn.Module):

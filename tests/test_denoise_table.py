@@ -249,3 +249,69 @@ def test_markdown_marks_partial_means_and_worse_than_input():
     assert "half" not in [r["method"] for r in rows if r["pareto"].get("chamfer")]
     halves = dt.render_markdown(rows, info, "t", []).split("## Accuracy and coverage")[1].split("## Cases")[0]
     assert "| good |" in halves and "| half |" not in halves  # complete rows only
+
+
+def test_score_protocol_noise_in_radius_units(tmp_path, fakes):
+    """protocol=score: noise is a fraction of the clean cloud's bounding-sphere radius (measured on
+    the noisy cloud it made), each method gets the bbox-diagonal equivalent, and every metric is
+    the score protocol's."""
+    out = tmp_path / "score"
+    cfg = make_cfg(out, fakes, ["open3d_mls"], "protocol=score", "noise=0.02", "floor=false")
+    cfg.cases = cfg.cases[:1]
+    res = dt.run(cfg, command="dss-denoise-table protocol=score (test)")
+    meta = res["cases"][0]
+    clean, noisy = load_points(out / "cases/tiny/clean.ply"), load_points(out / "cases/tiny/noisy.ply")
+    lo, hi = clean.min(0), clean.max(0)
+    radius = np.sqrt(((clean - (lo + hi) / 2) ** 2).sum(1)).max()
+    diag = np.linalg.norm(hi - lo)
+    assert meta["noise_unit"] == "radius" and np.isclose(meta["noise_diag"], 0.02 * radius / diag, rtol=1e-5)
+    assert 0.25 < meta["noise_diag"] / 0.02 < 0.5  # a radius is at most half the diagonal
+    assert np.isclose(np.std(noisy - clean), 0.02 * radius, rtol=0.05)  # per-axis std = 2% of the radius
+    rec = json.loads((out / "records/tiny/open3d_mls.json").read_text())
+    from experiments.baselines.methods import preset_params
+
+    assert rec["request"]["params"] == preset_params("open3d_mls", meta["noise_diag"])
+    mesh = load_mesh(out / "cases/tiny/mesh.ply")
+    out_pts = load_points(out / "outputs/tiny/open3d_mls.ply")
+    ref = evaluate(out_pts, clean, mesh, "score")
+    assert np.isclose(rec["metrics"]["chamfer"], ref.chamfer, rtol=1e-6)
+    assert not np.isclose(ref.chamfer, evaluate(out_pts, clean, mesh, "paper").chamfer, rtol=0.1)
+    table = json.loads((out / "table.json").read_text())
+    assert table["protocol"] == "score" and "bounding-sphere radius" in table["title"]
+    assert "`score` protocol" in (out / "table.md").read_text()
+    with pytest.raises(ValueError, match="protocol must be one of"):
+        dt.run(make_cfg(tmp_path / "bad", fakes, ["open3d_mls"], "protocol=pap"))
+
+
+def test_baseline_outlier_removal_gives_baselines_the_filtered_cloud(tmp_path, fakes):
+    """baseline_outlier_removal=true: a baseline gets the noisy cloud minus what dss-denoise's
+    outlier removal drops (so an outlier axis compares smoothers); the request records it, so
+    records made without it are not reused."""
+    out = tmp_path / "pre"
+    cfg = make_cfg(out, fakes, ["open3d_mls"], "outliers=0.05", "floor=false", "baseline_outlier_removal=true")
+    cfg.cases = cfg.cases[:1]
+    dt.run(cfg)
+    rec = json.loads((out / "records/tiny/open3d_mls.json").read_text())
+    noisy = load_points(out / "cases/tiny/noisy.ply")
+    n_out = int(round(0.05 * 1500))
+    assert rec["request"]["prefilter"] == "outliers" and n_out // 3 < rec["prefilter"]["removed"] <= n_out + 5
+    assert rec["n_out"] == len(noisy) - rec["prefilter"]["removed"]  # MLS keeps its input's count
+    assert "after DSS's outlier removal" in (out / "table.md").read_text()
+    cfg2 = make_cfg(out, fakes, ["open3d_mls"], "outliers=0.05", "floor=false")
+    cfg2.cases = cfg.cases
+    dt.run(cfg2)  # without the prefilter: rerun, not the stored record
+    rec2 = json.loads((out / "records/tiny/open3d_mls.json").read_text())
+    assert "prefilter" not in rec2 and rec2["n_out"] == len(noisy)
+    assert rec2["metrics"]["chamfer"] > rec["metrics"]["chamfer"]  # the outliers stay in its output
+
+
+def test_dss_request_names_the_shipped_model_it_uses():
+    """A DSS record is reused only while the shipped model it ran with is unchanged: the request
+    holds that file's hash (per case noise), and an explicit model path is left to the overrides."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("denoise_table")
+    lo, hi = dt._request("dss_pix2pix", cfg, 0.003), dt._request("dss_pix2pix", cfg, 0.012)
+    assert lo["model_sha256"] == dt.file_sha256(dt.REPO_ROOT / "experiments/assets/denoiser_noise_0.3pct.onnx")[:16]
+    assert hi["model_sha256"] == dt.file_sha256(dt.REPO_ROOT / "experiments/assets/denoiser_noise_1pct.onnx")[:16]
+    assert "model_sha256" not in dt._request("dss_l0", cfg, 0.01)
+    assert dt.shipped_model_for(["reference=onnx", "reference.model=/x/m.onnx"], 0.01) is None

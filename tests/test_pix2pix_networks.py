@@ -234,3 +234,89 @@ def test_apply_flips_transforms_all_arrays_alike():
         np.testing.assert_array_equal(fb, fa * 10)
         seen.add(fa.tobytes())
     assert len(seen) == 4  # identity, h, v, both
+
+
+# ---- coverage head ---------------------------------------------------------------------------------
+def _disks(n: int, size: int = 32, seed: int = 0) -> list[dict]:
+    """Render-like pairs: a shaded disk on black (clean) and the same disk with a 2 px bright halo
+    around it (noisy), as noise spreads a render's silhouette."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    out = []
+    for _ in range(n):
+        c, r = 8 + torch.rand(2, generator=g) * (size - 16), 4 + torch.rand(1, generator=g) * 4
+        d = ((yy - c[0]) ** 2 + (xx - c[1]) ** 2).sqrt()
+        clean = (d <= r).float() * (0.3 + 0.5 * (1 - d / (r + 1)))
+        noisy = clean + ((d > r) & (d <= r + 2)).float() * 0.4
+        out.append({"noisy": noisy.expand(3, -1, -1).clone(), "clean": clean.expand(3, -1, -1).clone()})
+    return out
+
+
+def test_coverage_head_starts_at_the_input_coverage_and_exports_exactly(tmp_path):
+    """Warm-started from a generator without the head, the coverage generator returns that
+    generator's output on the pixels the input covers and exact zeros elsewhere; the gated output
+    exports to ONNX with exact zeros; the config round-trips; the ONNX weights warm-start it."""
+    from pix2pix.export import export_onnx, onnx_parity
+    from pix2pix.module import covered, load_generator_weights
+
+    torch.manual_seed(0)
+    plain = ResNetGenerator(ngf=8, n_blocks=1, residual=True, init_gain=1.0)
+    nn.init.normal_(plain.head[1].weight, std=0.05)  # a non-identity network
+    for name, prm in plain.named_parameters():  # distinct biases: ONNX stores equal tensors once
+        if name.endswith("bias"):
+            nn.init.normal_(prm, std=0.01)
+    cov = ResNetGenerator(ngf=8, n_blocks=1, residual=True, init_gain=1.0, coverage_head=True)
+    path = export_onnx(plain, tmp_path / "plain.onnx", {})
+    report = load_generator_weights(cov, path)
+    assert report["kept_init"] == ["coverage.1.bias", "coverage.1.weight"]
+    x = torch.rand(2, 3, 32, 32)
+    x[:, :, :10] = 0  # background rows
+    with torch.no_grad():
+        ref, out = plain.eval()(x), cov.eval()(x)
+    assert torch.allclose(out, ref * covered(x), atol=1e-5)
+    assert (out[:, :, :10] == 0).all() and (ref[:, :, :10] != 0).any()  # plain leaks into the background
+    nn.init.normal_(cov.coverage[1].weight, std=0.5)
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(export_onnx(cov, tmp_path / "cov.onnx", {})))
+    y = sess.run(None, {sess.get_inputs()[0].name: x.numpy()})[0]
+    with torch.no_grad():
+        gate = cov(x) != 0
+    assert onnx_parity(cov, tmp_path / "cov.onnx", x) < 1e-4 and 0.05 < gate.float().mean() < 0.95
+    assert ((y != 0) == gate.numpy()).mean() > 0.999  # the same exact zeros
+    assert ResNetGenerator.from_config(json.loads(json.dumps(cov.config()))).coverage is not None
+    with pytest.raises(ValueError, match="does not fit this generator"):
+        load_generator_weights(ResNetGenerator(ngf=16, n_blocks=1, residual=True), path)
+    fresh = ResNetGenerator(ngf=8, n_blocks=1, residual=True, init_gain=1.0)  # zero biases, merged
+    with pytest.raises(ValueError, match="not in the file.*training checkpoint"):
+        load_generator_weights(cov, export_onnx(fresh, tmp_path / "fresh.onnx", {}))
+    with pytest.raises(FileNotFoundError, match="init_from=.*absent.onnx"):
+        load_generator_weights(cov, tmp_path / "absent.onnx")
+
+
+def test_coverage_head_learns_to_cut_the_halo():
+    """Trained with its cross-entropy, the head zeroes most of a halo the clean render does not
+    cover (at the start: none of it) and keeps the surface."""
+    import lightning as L
+
+    from pix2pix.module import Pix2PixModule
+
+    torch.manual_seed(0)
+    gen = ResNetGenerator(ngf=8, n_blocks=1, residual=True, init_gain=1.0, coverage_head=True)
+    test = _disks(16, seed=1)
+    x, c = torch.stack([d["noisy"] for d in test]), torch.stack([d["clean"] for d in test])
+    halo, disk = (x[:, 0] > 0) & (c[:, 0] == 0), c[:, 0] > 0
+
+    def rates():
+        with torch.no_grad():
+            y = gen.eval()(x)[:, 0]
+        return float((y[halo] == 0).float().mean()), float((y[disk] != 0).float().mean())
+
+    assert rates() == (0.0, 1.0)
+    module = Pix2PixModule(gen, None, lr=2e-3, lr_schedule="constant")
+    L.seed_everything(0)
+    L.Trainer(max_epochs=15, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+              enable_model_summary=False, limit_val_batches=0).fit(
+        module, torch.utils.data.DataLoader(_disks(64), batch_size=8, shuffle=True))
+    cut, kept = rates()
+    assert cut > 0.8 and kept > 0.95, (cut, kept)

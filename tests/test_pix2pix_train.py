@@ -95,12 +95,17 @@ def test_group_options_instantiate(group, tmp_path, wandb_offline_env):
             assert (len(cbs) == 0) == (option == "none")
 
 
-@pytest.mark.parametrize("exp,level", [("noise_0.3pct", 0.003), ("noise_1pct", 0.01)])
+@pytest.mark.parametrize("exp,level", [("noise_0.3pct", 0.003), ("noise_1pct", 0.01),
+                                       ("noise_0.3pct_coverage", 0.003)])
 def test_experiments_compose(exp, level, tmp_path):
     cfg = compose_train([f"experiment={exp}", f"output_dir={tmp_path}"])
     assert cfg.data.noise_level == level
     assert cfg.trainer.accelerator == "cpu" and cfg.model.name == "cpu_small"
     assert hydra.utils.instantiate(cfg.data).noise_level == level
+    if exp.endswith("_coverage"):  # the shipped 0.3% model + a new coverage head
+        model = hydra.utils.instantiate(cfg.model)
+        assert model.generator.coverage is not None
+        assert model.warm_start["kept_init"] == ["coverage.1.bias", "coverage.1.weight"]
 
 
 def test_hparams_search_composes_with_optuna_sweeper(tmp_path):
