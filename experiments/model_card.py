@@ -32,7 +32,7 @@ def eval_section(ev: dict) -> list[str]:
             f"`{ev.get('command', 'python -m experiments.evaluate_denoiser')}`"]
 
 
-def card(run_dir: Path, evaluation: dict | None = None) -> str:
+def card(run_dir: Path, evaluation: dict | None = None, notes: list[str] | None = None) -> str:
     cfg = OmegaConf.load(run_dir / "config.yaml")
     m = json.loads((run_dir / "metrics.json").read_text())
     val = m.get("best_val") or {}
@@ -69,6 +69,7 @@ def card(run_dir: Path, evaluation: dict | None = None) -> str:
          "counted the earlier run's time against trainer.max_time)") if m.get("resumed_from") else None,
         (f"- generator warm-started from `{_short(cfg.model.init_from, 3)}` (the time above is this run's only; "
          "that model's training comes on top)") if cfg.model.get("init_from") else None,
+        *[f"- {n}" for n in notes or []],
         "",
         "## Validation (best checkpoint, pixels covered in either render)",
         "| | output vs clean | noisy input vs clean |",
@@ -84,6 +85,7 @@ def card(run_dir: Path, evaluation: dict | None = None) -> str:
         "## Limitations",
         f"- A CPU-sized model trained for {(m.get('fit_seconds') or 0) / 60:.0f} min"
         + (" in its last run (resumed; the earlier run's time comes on top)" if m.get("resumed_from") else "")
+        + (" after its warm start (the warm-start model's training comes on top)" if cfg.model.get("init_from") else "")
         + " on ~4.6K pairs; the paper's model (ngf 64, 9 blocks, 256 px) "
         "trained for two days on a GPU. The issue's target (SMAPE -30% vs the noisy input) is "
         + (f"met by the shipped (snapped) output ({target_red * 100:.1f}%)." if isinstance(target_red, float)
@@ -111,9 +113,11 @@ def main(argv=None) -> int:
     ap.add_argument("--onnx", type=Path, default=None)
     ap.add_argument("--eval", type=Path, default=None,
                     help="JSON written by python -m experiments.evaluate_denoiser for this model")
+    ap.add_argument("--note", action="append", default=[],
+                    help="a line added to the card's Training section (repeatable), e.g. the warm start's history")
     a = ap.parse_args(argv)
     ev = json.loads(a.eval.read_text()) if a.eval else None
-    atomic_write_text(a.out, card(a.run_dir, ev))
+    atomic_write_text(a.out, card(a.run_dir, ev, a.note))
     if a.onnx is not None:
         with atomic_path(a.onnx) as tmp:
             shutil.copyfile(a.run_dir / "denoiser.onnx", tmp)
