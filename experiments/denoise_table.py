@@ -189,10 +189,10 @@ def noise_as_diag_fraction(points: np.ndarray, noise: float, unit: str) -> float
         return float(noise)
     if unit != "radius":
         raise ValueError(f"noise unit must be 'diag' or 'radius', got {unit!r}")
-    p = np.asarray(points, np.float64)
-    lo, hi = p.min(0), p.max(0)
-    radius = float(np.sqrt((((p - 0.5 * (lo + hi)) ** 2).sum(1)).max()))
-    return float(noise) * radius / float(np.linalg.norm(hi - lo))
+    from dss.metrics import compute_normalization
+
+    # each protocol's scale is 1 / its extent: radius / diagonal = paper scale / score scale
+    return float(noise) * compute_normalization(points, "paper").scale / compute_normalization(points, "score").scale
 
 
 def _make_case_arrays(case: dict, points: int, noise: float, seed: int, outliers: float = 0.0,

@@ -19,7 +19,8 @@ render).
 
 ``init_from``: a checkpoint (``.ckpt``) or an exported ONNX denoiser (``.onnx``) whose generator
 weights start this one (warm start: fine-tune a shipped model, e.g. with a coverage head added);
-parameters it lacks (the new head) keep their initialisation, and a shape mismatch is an error.
+only a coverage head the file lacks keeps its initialisation; any other missing tensor or a shape
+mismatch is an error.
 
 Note on step counts: under manual optimisation Lightning's ``global_step`` counts optimizer
 steps, so with a discriminator each batch advances it by 2 (``trainer.max_steps`` likewise).
@@ -58,13 +59,13 @@ from ._io import atomic_write_bytes
 from .metrics import l1 as l1_metric
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .networks import PatchDiscriminator, ResNetGenerator
+from .networks import PatchDiscriminator, ResNetGenerator, covered
 from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "load_generator_weights", "covered",
-           "CHECKPOINT_KEY", "make_grid"]
+__all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "load_generator_weights", "CHECKPOINT_KEY",
+           "make_grid"]
 
 CHECKPOINT_KEY = "dss_pix2pix"
 METRIC_NAMES = ("l1", "smape", "psnr")
@@ -378,12 +379,6 @@ class Pix2PixModule(L.LightningModule):
         # init_from=None: the checkpoint holds the weights (the warm-start file may be gone)
         return cls.load_from_checkpoint(path, map_location=map_location, generator=gen,
                                         discriminator=disc, weights_only=False, init_from=None)
-
-
-def covered(images: torch.Tensor) -> torch.Tensor:
-    """(B, 1, H, W) bool: pixels of the renders (B, C, H, W) that a surface covers (any channel
-    non-zero; the renders' background is exactly 0)."""
-    return images.abs().amax(dim=1, keepdim=True) > 0
 
 
 def _image_and_coverage(generator: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -29,7 +29,7 @@ from torch import nn
 from .blocks import Down, Head, ResidualBlock, Stem, Up
 from .norms import NormFactory, PixelNorm, build_norm, norm_spec
 
-__all__ = ["ResNetGenerator", "PatchDiscriminator", "init_xavier", "SIZE_MULTIPLE"]
+__all__ = ["ResNetGenerator", "PatchDiscriminator", "init_xavier", "covered", "SIZE_MULTIPLE"]
 
 #: H and W of generator inputs must be multiples of this (two stride-2 downsamplings).
 SIZE_MULTIPLE = 4
@@ -79,6 +79,12 @@ def check_image_batch(x: torch.Tensor, channels: int, multiple: int = SIZE_MULTI
 def _checks_enabled() -> bool:
     # Python-level shape checks would be frozen into a traced/exported graph as constants.
     return not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+
+
+def covered(images: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) bool: pixels of the renders (B, C, H, W) that a surface covers (any channel
+    non-zero; the renders' background is exactly 0)."""
+    return images.abs().amax(dim=1, keepdim=True) > 0
 
 
 #: magnitude of the coverage logit's prior (the input's own coverage, +-1): large enough that an
@@ -207,7 +213,7 @@ class ResNetGenerator(nn.Module):
         image = y * self.input_std + self.input_mean
         if self.coverage is None:
             return image, None
-        covered_in = (x.abs().amax(dim=1, keepdim=True) > 0).to(x.dtype)
+        covered_in = covered(x).to(x.dtype)
         logit = self.coverage(feats) + COVERAGE_PRIOR * (2.0 * covered_in - 1.0)
         return image, logit
 

@@ -257,7 +257,8 @@ def test_coverage_head_starts_at_the_input_coverage_and_exports_exactly(tmp_path
     generator's output on the pixels the input covers and exact zeros elsewhere; the gated output
     exports to ONNX with exact zeros; the config round-trips; the ONNX weights warm-start it."""
     from pix2pix.export import export_onnx, onnx_parity
-    from pix2pix.module import covered, load_generator_weights
+    from pix2pix.module import load_generator_weights
+    from pix2pix.networks import covered
 
     torch.manual_seed(0)
     plain = ResNetGenerator(ngf=8, n_blocks=1, residual=True, init_gain=1.0)
