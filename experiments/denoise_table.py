@@ -39,6 +39,7 @@ method's cloud) and ``runs/`` (DSS run directories with their logs).
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -380,7 +381,9 @@ def _run_baseline(spec: str, gt: dict, params: dict, limit: float,
     is added to the method's; the record's ``prefilter`` says how many points went)."""
     noisy, pre = gt["noisy"], None
     if prefilter:
-        noisy, pre = _prefilter_outliers(noisy)
+        if "prefiltered" not in gt:  # once per case: every baseline gets the same filtered cloud
+            gt["prefiltered"] = _prefilter_outliers(noisy)
+        noisy, pre = gt["prefiltered"]
     res = run_method(spec, noisy, params=params, time_limit=limit, clean=gt["clean"], protocol=gt["protocol"],
                      threads=threads)
     r = res.record
@@ -389,7 +392,7 @@ def _run_baseline(spec: str, gt: dict, params: dict, limit: float,
            "time_limit_s": limit, "n_out": r.n_out, "versions": r.versions, "signal": r.signal,
            "stderr_tail": r.stderr_tail[-1500:] if r.failed and r.status != "worse_than_input" else ""}
     if pre is not None:
-        rec["prefilter"] = pre
+        rec["prefilter"] = dict(pre)
         if rec["time_s"] is not None:
             rec["time_s"] += pre["seconds"]
     pts = res.points
@@ -505,6 +508,13 @@ def shipped_model_for(overrides: list[str], noise: float) -> Path | None:
 
 
 def file_sha256(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes (cached while its size and modification time stay)."""
+    st = Path(path).stat()
+    return _sha256_cached(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _sha256_cached(path: str, size: int, mtime_ns: int) -> str:
     import hashlib
 
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()

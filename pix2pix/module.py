@@ -59,7 +59,7 @@ from ._io import atomic_write_bytes
 from .metrics import l1 as l1_metric
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .networks import PatchDiscriminator, ResNetGenerator, covered
+from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered
 from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
@@ -203,7 +203,7 @@ class Pix2PixModule(L.LightningModule):
         if logit is None:
             fake = l1_image = image
         else:
-            fake = image * (logit > 0).to(image.dtype)  # the inference output
+            fake = apply_coverage(image, logit)  # the inference output
             clean_cov = covered(clean)
             l1_image = torch.where(clean_cov, image, fake)
         if self.uses_gan:
@@ -273,8 +273,7 @@ class Pix2PixModule(L.LightningModule):
         mask = batch.get("mask")
         out, logit = _image_and_coverage(self.generator, noisy)
         if logit is not None:
-            gate = logit > 0
-            out = out * gate.to(out.dtype)
+            out, gate = apply_coverage(out, logit), logit > 0
             either = covered(noisy) | covered(clean)
             hit = (gate == covered(clean)) & either
             self._accumulate("coverage_hits", hit.sum().to(torch.float64), 1.0)
@@ -407,8 +406,7 @@ def load_generator_weights(generator: nn.Module, path: str | Path) -> dict[str, 
         own = generator.state_dict()
         state = {k: v for k, v in state.items() if k in own}  # graph constants are not parameters
     else:
-        sd = _read_checkpoint(path)["state_dict"]
-        state = {k[len("generator."):]: v for k, v in sd.items() if k.startswith("generator.")}
+        state = _generator_state(_read_checkpoint(path))
         own = generator.state_dict()
     if not state:
         raise ValueError(f"init_from={path}: no generator weights found in the file")
@@ -426,6 +424,11 @@ def load_generator_weights(generator: nn.Module, path: str | Path) -> dict[str, 
     generator.load_state_dict(state, strict=False)
     log.info("generator warm-started from %s (%d tensors; kept their own init: %s)", path, len(state), missing)
     return {"path": str(path), "loaded": len(state), "kept_init": missing}
+
+
+def _generator_state(ckpt: dict[str, Any]) -> dict[str, torch.Tensor]:
+    """The generator's tensors of a Lightning checkpoint, named as in the generator itself."""
+    return {k[len("generator."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("generator.")}
 
 
 def _read_checkpoint(path: str | Path, map_location: str = "cpu") -> dict[str, Any]:
@@ -452,7 +455,7 @@ def load_generator(path: str | Path, map_location: str = "cpu") -> tuple[ResNetG
     if not info.get("generator"):
         raise ValueError(f"{path}: the checkpoint does not describe its generator")
     gen = ResNetGenerator.from_config(info["generator"])
-    state = {k[len("generator."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("generator.")}
+    state = _generator_state(ckpt)
     try:
         gen.load_state_dict(state)
     except RuntimeError as e:

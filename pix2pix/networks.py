@@ -29,7 +29,7 @@ from torch import nn
 from .blocks import Down, Head, ResidualBlock, Stem, Up
 from .norms import NormFactory, PixelNorm, build_norm, norm_spec
 
-__all__ = ["ResNetGenerator", "PatchDiscriminator", "init_xavier", "covered", "SIZE_MULTIPLE"]
+__all__ = ["ResNetGenerator", "PatchDiscriminator", "init_xavier", "covered", "apply_coverage", "SIZE_MULTIPLE"]
 
 #: H and W of generator inputs must be multiples of this (two stride-2 downsamplings).
 SIZE_MULTIPLE = 4
@@ -85,6 +85,11 @@ def covered(images: torch.Tensor) -> torch.Tensor:
     """(B, 1, H, W) bool: pixels of the renders (B, C, H, W) that a surface covers (any channel
     non-zero; the renders' background is exactly 0)."""
     return images.abs().amax(dim=1, keepdim=True) > 0
+
+
+def apply_coverage(image: torch.Tensor, logit: torch.Tensor) -> torch.Tensor:
+    """``image`` (B, C, H, W) with exact zeros where the coverage ``logit`` (B, 1, H, W) is <= 0."""
+    return image * (logit > 0).to(image.dtype)
 
 
 #: magnitude of the coverage logit's prior (the input's own coverage, +-1): large enough that an
@@ -221,7 +226,7 @@ class ResNetGenerator(nn.Module):
         image, logit = self.forward_with_coverage(x)
         if logit is None:
             return image
-        return image * (logit > 0).to(image.dtype)
+        return apply_coverage(image, logit)
 
 
 class PatchDiscriminator(nn.Module):
