@@ -59,6 +59,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from .cameras import Cameras
+from .hull import fill_displacement, hull_displacement, nearest_covered
 from .losses import l1_loss, smape_loss
 from .regularizers import (
     ProjectionLoss,
@@ -68,6 +69,7 @@ from .regularizers import (
     project_to_neighbour_planes,
 )
 from .render import RenderOutput, RenderSettings, render
+from .shading import shade
 from .splats import auto_sigma
 from .views import SphereViewSampler, error_aware_cameras
 
@@ -102,6 +104,20 @@ class OptimizerConfig:
     clip_point_grad: float | None = 0.01
     clip_normal_grad: float | None = 1e-4
     image_loss: str = "smape"  # "smape" | "l1"
+    # > 0: add silhouette_weight x L1 between the rendered coverage (a constant channel blended
+    # like the colours: 1 where a splat is visible, the background elsewhere) and the reference's
+    # (its pixels that differ from the background). Only the visibility gradient of Eq. gradP
+    # acts on that channel: a shape-from-silhouette pull that shading cannot cancel. 0: the paper.
+    silhouette_weight: float = 0.0
+    # > 0: after every point step, points that project onto the reference's background move this
+    # fraction of the way to its silhouette (dss.hull: a visual-hull pull that tears membranes
+    # across holes, where the visibility gradient is zero). 0: the paper.
+    hull_step: float = 0.0
+    # > 0: after every point step, each reference pixel the render leaves empty pulls the nearest
+    # projected point this fraction of the way to it (dss.hull.fill_displacement), times
+    # lr_decay^cycle like the learning rates (thin parts form early, the surface then settles).
+    # 0: the paper.
+    fill_step: float = 0.0
     projection_weight: float = 0.02
     repulsion_weight: float = 0.05
     regularizer_weighting: str = "relative"  # "relative" | "absolute" | "per_point" (x N; see _regularizer_grads)
@@ -165,7 +181,7 @@ class OptimizerConfig:
             raise ValueError(f"normal_refresh must be 'none' or 'pca', got {self.normal_refresh!r}")
         if self.views <= 0:
             raise ValueError(f"views per step must be positive, got {self.views}")
-        for name in ("lr_points", "lr_normals"):
+        for name in ("lr_points", "lr_normals", "silhouette_weight", "hull_step", "fill_step"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles"):
@@ -260,6 +276,8 @@ class MultiViewOptimizer:
         self._neighbors = None
         self._pca_normals: torch.Tensor | None = None  # the projection term's PCA normals, last step
         self._sigma = None
+        self._hull: tuple[torch.Tensor, torch.Tensor] | None = None  # the cycle's (coverage, nearest_covered)
+        self._cycle_decay = 1.0  # lr_decay ** cycle
         self.history: dict = {"step": [], "loss": [], "image_loss": [], "time": [], "kind": [], "lr_halvings": 0,
                               "config": asdict(self.cfg)}
         self._make_optimizers()
@@ -279,6 +297,16 @@ class MultiViewOptimizer:
         if self.cfg.image_loss == "smape":
             return smape_loss(images, target, channel_reduction="mean")
         return l1_loss(images, target, channel_reduction="mean")
+
+    def _with_coverage(self, points, normals, cameras: Cameras, colors=None) -> torch.Tensor:
+        """The shading's attributes plus a constant 1 channel (blended: the coverage). (V, N, C+1)"""
+        a = shade(self.shading, points, normals, cameras, colors)
+        return torch.cat([a, a.new_ones(a.shape[:-1] + (1,))], -1)
+
+    def _coverage(self, target: torch.Tensor) -> torch.Tensor:
+        """Reference coverage (V, H, W): pixels whose value differs from the background."""
+        bg = torch.as_tensor(self.settings.background, dtype=target.dtype, device=target.device).flatten()
+        return ((target - bg).abs().amax(-1) > 1e-6).to(target.dtype)
 
     def _regularizer_grads(self, occl) -> torch.Tensor | None:
         """gamma-weighted regulariser gradients on the points (N, 3), or None."""
@@ -338,9 +366,14 @@ class MultiViewOptimizer:
         self.opt_n.zero_grad(set_to_none=True)
         saved = (self.points.detach().clone(), self.normals.detach().clone())
         pts = self.points if (image_moves_points or need_img_scale) else self.points.detach()
+        sil = self.cfg.silhouette_weight > 0
         out = render(pts, self.normals if move_normals else self.normals.detach(), cams, settings,
-                     shading=self.shading, backend=self.backend, sigma=self._sigma)
-        img_loss = self._image_loss(out.images, target)
+                     shading=self._with_coverage if sil else self.shading, backend=self.backend, sigma=self._sigma)
+        if sil:
+            img_loss = self._image_loss(out.images[..., :-1], target)
+            img_loss = img_loss + self.cfg.silhouette_weight * (out.images[..., -1] - self._coverage(target)).abs().mean()
+        else:
+            img_loss = self._image_loss(out.images, target)
         if not torch.isfinite(img_loss):
             self._diverged("the image loss is not finite", saved)
             return float("nan"), float("nan")
@@ -385,6 +418,15 @@ class MultiViewOptimizer:
             self.opt_n.step()
         with torch.no_grad():
             self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
+            if image_moves_points and self.cfg.hull_step > 0:
+                if self._hull is None or self._hull[0].shape != target.shape[:-1]:
+                    mask = self._coverage(target) > 0
+                    self._hull = (mask, nearest_covered(mask))
+                d, _ = hull_displacement(self.points, cams, *self._hull)
+                self.points.add_(self.cfg.hull_step * d)
+            if image_moves_points and self.cfg.fill_step > 0:
+                d, _ = fill_displacement(self.points, cams, self._coverage(target) > 0, out.mask)
+                self.points.add_(self.cfg.fill_step * self._cycle_decay * d)
         if not (torch.isfinite(self.points).all() and torch.isfinite(self.normals).all()):
             self._diverged("a step produced NaN/inf parameters", saved)
             return float("nan"), float("nan")
@@ -481,6 +523,8 @@ class MultiViewOptimizer:
                     cams = self.sampler.sample()
             with torch.no_grad():
                 target = self.reference(cams).detach()
+            self._hull = None
+            self._cycle_decay = c.lr_decay ** cycle
             self._refresh_neighbourhoods()
             if cycle > 0 and c.lr_decay != 1.0:
                 for opt in (self.opt_p, self.opt_n):

@@ -46,3 +46,28 @@ def random_scene(seed: int, n: int = 300, views: int = 3, size=(40, 56)):
     sigma = 0.02 + 0.05 * torch.rand(n, generator=g)
     colors = torch.rand(n, 3, generator=g)
     return pts, nrm, cams, sigma, colors
+
+
+def front_view_run(start: torch.Tensor, target: torch.Tensor, shading="mask", **config):
+    """Optimise a flat cloud (z = 0, normals +z) against a flat target seen by one fixed camera
+    on +z (64 px, splat std 0.012): the 2D silhouette experiments. ``config`` goes to
+    :class:`dss.optimize.OptimizerConfig` (views=1, lr_scale=1, no momentum, L1 and no
+    regularisers unless given). Returns the :class:`dss.optimize.OptimizationResult`."""
+    from dss.cameras import look_at
+    from dss.optimize import MultiViewOptimizer, OptimizerConfig
+    from dss.render import RenderSettings, render
+
+    up = torch.tensor([0.0, 0.0, 1.0])
+    sn, tn = up.expand(len(start), 3).clone(), up.expand(len(target), 3).clone()
+    st = RenderSettings(sigma=0.012)
+    cams = look_at(torch.tensor([[0.0, 0.0, 2.0]]), (0, 0, 0), (0, 1, 0), 150.0, (64, 64))
+
+    class Fixed:
+        def sample(self):
+            return cams
+
+    cfg = dict(views=1, lr_scale=1.0, momentum=0.0, projection_weight=0.0, repulsion_weight=0.0, image_loss="l1")
+    cfg.update(config)
+    opt = MultiViewOptimizer(start, sn, lambda c: render(target, tn, c, st, shading=shading).images,
+                             OptimizerConfig(**cfg), st, sampler=Fixed(), shading=shading, image_size=64)
+    return opt.run()

@@ -4,7 +4,7 @@ import math
 
 import pytest
 import torch
-from scenes import sphere_points
+from scenes import front_view_run, sphere_points
 
 from dss.cameras import look_at
 from dss.metrics import evaluate
@@ -43,31 +43,16 @@ def test_shifted_scaled_sphere_converges(schedule, cpp_backend):
     assert torch.allclose(res.normals.norm(dim=1), torch.ones(len(res.normals)), atol=1e-5)
 
 
-def _grid_run(repulsion_weight):
+def _grid_run(repulsion_weight, shading="mask", **kw):
     """A 24x24 grid facing a fixed camera is pulled into a smaller disk (2D silhouette)."""
     g = (torch.arange(24, dtype=torch.float32) + 0.5) / 24 - 0.5
     u, v = torch.meshgrid(g, g, indexing="ij")
     sp = torch.stack([u.flatten(), v.flatten(), torch.zeros(576)], -1) * 0.7
-    sn = torch.tensor([0.0, 0.0, 1.0]).expand(576, 3).clone()
     r = torch.sqrt(torch.rand(6000, generator=torch.Generator().manual_seed(0))) * 0.25
     a = torch.rand(6000, generator=torch.Generator().manual_seed(1)) * 2 * math.pi
     tp = torch.stack([r * torch.cos(a), r * torch.sin(a), torch.zeros(6000)], -1)
-    tn = torch.tensor([0.0, 0.0, 1.0]).expand(6000, 3).clone()
-    st = RenderSettings(sigma=0.012)
-    cams = look_at(torch.tensor([[0.0, 0.0, 2.0]]), (0, 0, 0), (0, 1, 0), 150.0, (64, 64))
-
-    class Fixed:
-        def sample(self):
-            return cams
-
-    def ref(c):
-        return render(tp, tn, c, st, shading="mask").images
-
-    cfg = OptimizerConfig(cycles=3, normal_steps=0, point_steps=20, lr_points=2.0, lr_scale=1.0, momentum=0.0, views=1,
-                          projection_weight=0.0, repulsion_weight=repulsion_weight, image_loss="l1",
-                          window_start=8, window_end=4)
-    opt = MultiViewOptimizer(sp, sn, ref, cfg, st, sampler=Fixed(), shading="mask", image_size=64)
-    res = opt.run()
+    res = front_view_run(sp, tp, shading, cycles=3, normal_steps=0, point_steps=20, lr_points=2.0,
+                         repulsion_weight=repulsion_weight, window_start=8, window_end=4, **kw)
     p = res.points[:, :2]
     d = torch.cdist(p, p) + torch.eye(len(p)) * 10
     nn_dist = d.min(1).values
@@ -109,6 +94,18 @@ def _noisy_plane(seed: int, focal: float = 100.0):
         return render(pts, nrm, c, st, shading=SUN).images
 
     return pts, nrm, st, _FixedView(cams), ref
+
+
+def test_silhouette_term_pulls_the_outline_where_the_colours_barely_do(cpp_backend):
+    """Dim shading (channels <= 0.04): the colour loss hardly moves the grid onto the disk; the
+    coverage term (silhouette_weight) does, as a mask-shaded run would."""
+    dim = SunLights(colors=0.02 * torch.eye(3), ambient=0.02)
+    colour_only = _grid_run(0.0, shading=dim)
+    with_sil = _grid_run(0.0, shading=dim, silhouette_weight=1.0)
+    assert with_sil["in_disk"] > colour_only["in_disk"] + 0.3, (colour_only, with_sil)
+    assert with_sil["radius"] < 0.8 * colour_only["radius"], (colour_only, with_sil)
+    with pytest.raises(ValueError, match="silhouette_weight must be >= 0"):
+        OptimizerConfig(silhouette_weight=-1.0)
 
 
 def test_projection_flattens_a_noisy_plane_during_normal_steps():
@@ -291,3 +288,25 @@ def test_large_deformation_options():
     assert torch.allclose(res.normals.norm(dim=1), torch.ones(len(res.normals)), atol=1e-5)
     with pytest.raises(ValueError, match="normal_refresh"):
         OptimizerConfig(normal_refresh="mls")
+
+
+def test_every_deform_scene_composes_into_a_valid_optimizer_config():
+    """Each conf/scene/*.yaml composes with conf/deform.yaml and its optimizer block is a valid
+    OptimizerConfig (a mistyped key or a bad value fails here, not minutes into a run)."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    scenes = sorted(p.stem for p in (conf / "scene").glob("*.yaml"))
+    assert {"sphere_teapot", "sphere_bunny", "cube_yoga", "grid_teapot"} <= set(scenes)
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        for scene in scenes:
+            cfg = compose("deform", overrides=[f"scene={scene}"])
+            opt = OptimizerConfig(**OmegaConf.to_container(cfg.optimizer, resolve=True))
+            if scene.startswith("grid_teapot"):
+                assert opt.hull_step == 0.0  # the paper's repulsion experiment, image term only
+            else:
+                assert opt.hull_step > 0
+    assert OptimizerConfig().hull_step == 0.0 and OptimizerConfig().fill_step == 0.0  # the paper's optimiser
