@@ -222,6 +222,24 @@ def nn_distances(query: np.ndarray, ref: np.ndarray, tree: cKDTree | None = None
     return d
 
 
+def spacing_stats(points: Any, clustered_below: float = 0.25) -> dict:
+    """How evenly points are spread: nearest-neighbour distances among the points themselves.
+
+    Returns ``nn_mean`` (same units as the points), ``nn_cv`` (std / mean of those distances) and
+    ``clustered_fraction``, the fraction of points whose nearest neighbour is closer than
+    ``clustered_below`` x ``nn_mean`` (points piled onto each other, the local minimum the
+    paper's repulsion term exists for). Duplicated points count as clustered.
+    """
+    p = as_points(points)
+    if len(p) < 2:
+        raise ValueError(f"spacing needs at least 2 points, got {len(p)}")
+    d, _ = cKDTree(p).query(p, k=2, workers=-1)
+    nn = d[:, 1]
+    mean = float(nn.mean())
+    return {"nn_mean": mean, "nn_cv": float(nn.std() / mean) if mean > 0 else float("inf"),
+            "clustered_fraction": float((nn < clustered_below * mean).mean())}
+
+
 def _point_segment_sq(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Squared distance from points p (K,3) to segments [a,b] (K,3); zero-length safe."""
     ab = b - a

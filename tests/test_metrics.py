@@ -229,3 +229,18 @@ def test_normal_error_against_a_plane():
     assert e["p90"] == pytest.approx(30.0, abs=1e-3)
     with pytest.raises(ValueError, match="normals"):
         M.normal_error_deg(pts, nrm[:10], (verts, faces))
+
+
+def test_spacing_stats_tell_a_grid_from_a_clustered_cloud():
+    from dss.metrics import spacing_stats
+
+    g = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), indexing="ij"), -1).reshape(-1, 2)
+    grid = np.concatenate([g, np.zeros((100, 1))], 1)
+    s = spacing_stats(grid)
+    assert s["nn_mean"] == pytest.approx(1.0) and s["nn_cv"] == pytest.approx(0.0, abs=1e-12)
+    assert s["clustered_fraction"] == 0.0
+    piled = grid.copy()
+    piled[:30] = piled[30:60] + 1e-3  # 60 points in 30 near-coincident pairs
+    assert spacing_stats(piled)["clustered_fraction"] == pytest.approx(0.6)
+    with pytest.raises(ValueError, match="at least 2 points"):
+        spacing_stats(grid[:1])
