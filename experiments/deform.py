@@ -4,7 +4,8 @@ Writes into the run directory: ``config.yaml``, ``final.ply``, ``snapshots/step_
 ``snapshots.png`` (renders at the chosen steps, a column each, like the paper's teaser),
 ``loss_curve.png`` + ``loss.json``, ``chamfer_vs_time.png`` (Chamfer to the target against wall
 time) and ``metrics.json`` (Chamfer and Hausdorff to the target under the paper protocol, wall
-time, steps, learning-rate halvings).
+time, steps, learning-rate halvings, point spacing); the 2D grid experiments
+(``front_view_only``) also ``points_xy.png``, the final points on the image plane.
 """
 
 from __future__ import annotations
