@@ -276,7 +276,9 @@ class MultiViewOptimizer:
         self._neighbors = None
         self._pca_normals: torch.Tensor | None = None  # the projection term's PCA normals, last step
         self._sigma = None
-        self._hull: tuple[torch.Tensor, torch.Tensor] | None = None  # the cycle's (coverage, nearest_covered)
+        # the reference the coverage was derived from, its coverage (V, H, W) bool and (for the
+        # hull pull) its nearest covered pixels: once per reference, i.e. once per cycle
+        self._ref_coverage: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None = None
         self._cycle_decay = 1.0  # lr_decay ** cycle
         self.history: dict = {"step": [], "loss": [], "image_loss": [], "time": [], "kind": [], "lr_halvings": 0,
                               "config": asdict(self.cfg)}
@@ -303,10 +305,17 @@ class MultiViewOptimizer:
         a = shade(self.shading, points, normals, cameras, colors)
         return torch.cat([a, a.new_ones(a.shape[:-1] + (1,))], -1)
 
-    def _coverage(self, target: torch.Tensor) -> torch.Tensor:
-        """Reference coverage (V, H, W): pixels whose value differs from the background."""
-        bg = torch.as_tensor(self.settings.background, dtype=target.dtype, device=target.device).flatten()
-        return ((target - bg).abs().amax(-1) > 1e-6).to(target.dtype)
+    def _coverage(self, target: torch.Tensor, nearest: bool = False):
+        """Reference coverage (V, H, W) bool: pixels whose value differs from the background; with
+        ``nearest``, also its :func:`dss.hull.nearest_covered`. Computed once per reference."""
+        cache = self._ref_coverage
+        if cache is None or cache[0] is not target:
+            bg = torch.as_tensor(self.settings.background, dtype=target.dtype, device=target.device).flatten()
+            cache = (target, (target - bg).abs().amax(-1) > 1e-6, None)
+        if nearest and cache[2] is None:
+            cache = (target, cache[1], nearest_covered(cache[1]))
+        self._ref_coverage = cache
+        return cache[1:] if nearest else cache[1]
 
     def _regularizer_grads(self, occl) -> torch.Tensor | None:
         """gamma-weighted regulariser gradients on the points (N, 3), or None."""
@@ -371,7 +380,8 @@ class MultiViewOptimizer:
                      shading=self._with_coverage if sil else self.shading, backend=self.backend, sigma=self._sigma)
         if sil:
             img_loss = self._image_loss(out.images[..., :-1], target)
-            img_loss = img_loss + self.cfg.silhouette_weight * (out.images[..., -1] - self._coverage(target)).abs().mean()
+            cover = self._coverage(target).to(out.images.dtype)
+            img_loss = img_loss + self.cfg.silhouette_weight * (out.images[..., -1] - cover).abs().mean()
         else:
             img_loss = self._image_loss(out.images, target)
         if not torch.isfinite(img_loss):
@@ -419,13 +429,10 @@ class MultiViewOptimizer:
         with torch.no_grad():
             self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
             if image_moves_points and self.cfg.hull_step > 0:
-                if self._hull is None or self._hull[0].shape != target.shape[:-1]:
-                    mask = self._coverage(target) > 0
-                    self._hull = (mask, nearest_covered(mask))
-                d, _ = hull_displacement(self.points, cams, *self._hull)
+                d, _ = hull_displacement(self.points, cams, *self._coverage(target, nearest=True))
                 self.points.add_(self.cfg.hull_step * d)
             if image_moves_points and self.cfg.fill_step > 0:
-                d, _ = fill_displacement(self.points, cams, self._coverage(target) > 0, out.mask)
+                d, _ = fill_displacement(self.points, cams, self._coverage(target), out.mask)
                 self.points.add_(self.cfg.fill_step * self._cycle_decay * d)
         if not (torch.isfinite(self.points).all() and torch.isfinite(self.normals).all()):
             self._diverged("a step produced NaN/inf parameters", saved)
@@ -523,7 +530,6 @@ class MultiViewOptimizer:
                     cams = self.sampler.sample()
             with torch.no_grad():
                 target = self.reference(cams).detach()
-            self._hull = None
             self._cycle_decay = c.lr_decay ** cycle
             self._refresh_neighbourhoods()
             if cycle > 0 and c.lr_decay != 1.0:
