@@ -270,163 +270,195 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const float* PP = principal.data_ptr<float>();
   const float* BG = background.data_ptr<float>();
 
-  // Per-pixel summary of the visible set (front depth, sum rho, sum rho w): most (point, pixel)
-  // pairs only add a splat to or remove a non-front splat from that set, which is O(C) then.
-  const int64_t S = C + 2;  // [d0, den, num_0..num_{C-1}]
-  std::vector<float> summ(V * H * W * S);
-  dynamic_for(V * H, 4, [&](int64_t row) {
-    for (int64_t j = 0; j < W; ++j) {
-      const int64_t g = row * W + j;
-      const int32_t* pi = I + g * K;
-      const float* pd = D + g * K;
-      const float* pr = Rh + g * K;
-      float* o = summ.data() + g * S;
-      o[0] = pi[0] >= 0 ? pd[0] : std::numeric_limits<float>::infinity();
-      float den = 0.f;
-      for (int64_t c = 0; c < C; ++c) o[2 + c] = 0.f;
-      for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= o[0] + merge; ++e) {
-        den += pr[e];
-        const float* a = A + ((g / (H * W)) * N + pi[e]) * C;
-        for (int64_t c = 0; c < C; ++c) o[2 + c] += pr[e] * a[c];
-      }
-      o[1] = den;
-    }
-  });
-  const float* SM = summ.data();
-
-  // View-major: a task is one view and a run of consecutive (spatially sorted) points, so its
-  // window reads stay in one view's buffers (cache-resident) instead of striding over all V
-  // views per point. Per-view world gradients are summed over views afterwards in view order.
-  std::vector<double> gview(V * N * 3, 0.0);
+  // Everything a (point, pixel) evaluation reads about the pixel, in one record per pixel, so an
+  // evaluation is channel-free: with g = dL/dI at the pixel, only the projections g . w of the
+  // attributes matter (gd = g . I_new - g . I = (sum rho g.w) / (sum rho) - g . I). Record layout
+  // (floats): [0] front depth d0 (inf if empty), [1] sum rho and [2] sum rho g.w over the visible
+  // set, [3] g . I, [4] g . background, [5] 1 if g != 0, [6, 6+C) g, then per cache entry depth,
+  // rho and g.w (K each). Built for one view at a time (a few MB, cache-resident while that
+  // view's points read it); the cache indices are read from idx directly.
+  const int64_t HW = H * W;
+  const int64_t RS = 6 + C + 3 * K;
+  const int64_t oD = 6 + C, oR = oD + K, oG = oR + K;
+  std::vector<float> rec((size_t)(HW * RS));
+  float* REC = rec.data();
+  std::vector<double> gsum((size_t)(N * 3), 0.0);  // world gradient, summed over views in view order
   const int64_t kChunk = 64, nchunks = (N + kChunk - 1) / kChunk;
-  dynamic_for(V * nchunks, 1, [&](int64_t task) {
-    const int64_t v = task / nchunks, k_begin = (task % nchunks) * kChunk, k_end = std::min(N, k_begin + kChunk);
-    for (int64_t k = k_begin; k < k_end; ++k) {
-      const float* s = P + (v * N + k) * kFields;
-      if (!(s[9] > 0.f)) continue;
-      const float u = s[0], vv = s[1], z = s[6], nk = s[5];
-      const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1];
-      const float X = (u - cx) * z / f, Y = (vv - cy) * z / f;
-      const float* wk = A + (v * N + k) * C;
-      const int ic = (int)std::floor(vv), jc = (int)std::floor(u);
-      double acc[3] = {0, 0, 0};
-      for (int64_t dy = -window; dy <= window; dy += stride) {
-        const int64_t i = ic + dy;
-        if (i < 0 || i >= H) continue;
-        for (int64_t dx = -window; dx <= window; dx += stride) {
-          const int64_t j = jc + dx;
-          if (j < 0 || j >= W) continue;
-          const int64_t g = (v * H + i) * W + j;
-          const float* gp = GR + g * C;
-          bool nz = false;
-          for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
-          if (!nz) continue;
-          const int32_t* pi = I + g * K;
-          const float* pd = D + g * K;
-          const float* pr = Rh + g * K;
-          const float* sm = SM + g * S;
-          const float d0 = sm[0];
-          int ek = -1;  // position of k in the cache
-          for (int e = 0; e < K && pi[e] >= 0; ++e)
-            if (pi[e] == (int32_t)k) { ek = e; break; }
-          const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
-          const float px = (float)j + 0.5f, py = (float)i + 0.5f;
-          float zp = 0.f;  // k's tangent-plane depth at the pixel: only needed when k is not visible
-          float num[16], den;
-          int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
-          if (k_visible) {
-            kase = 2;
-            if (ek > 0) {  // the front stays: the visible set loses k only
-              den = sm[1] - pr[ek];
-              for (int64_t ch = 0; ch < C; ++ch) num[ch] = sm[2 + ch] - pr[ek] * wk[ch];
-              if (!(den > 0.f)) den = 0.f;
-            } else {  // k was the front: the next entry is the new front, may reveal others
-              den = 0.f;
-              for (int64_t ch = 0; ch < C; ++ch) num[ch] = 0.f;
-              if (K > 1 && pi[1] >= 0) {
-                const float lim = pd[1] + merge;
-                for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+  const float inf = std::numeric_limits<float>::infinity();
+  for (int64_t v = 0; v < V; ++v) {
+    dynamic_for(H, 4, [&](int64_t i) {
+      for (int64_t j = 0; j < W; ++j) {
+        const int64_t g = (v * H + i) * W + j;
+        float* r = REC + (i * W + j) * RS;
+        const float* gp = GR + g * C;
+        bool nz = false;
+        for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
+        r[5] = nz ? 1.f : 0.f;
+        if (!nz) continue;  // no evaluation reads this record
+        const int32_t* pi = I + g * K;
+        const float* pd = D + g * K;
+        const float* pr = Rh + g * K;
+        const float* ip = IMG + g * C;
+        float gi = 0.f, gb = 0.f;
+        for (int64_t ch = 0; ch < C; ++ch) {
+          r[6 + ch] = gp[ch];
+          gi += gp[ch] * ip[ch];
+          gb += gp[ch] * BG[ch];
+        }
+        r[3] = gi;
+        r[4] = gb;
+        const float d0 = pi[0] >= 0 ? pd[0] : inf;
+        float den = 0.f, gnum = 0.f;
+        for (int64_t e = 0; e < K; ++e) {
+          r[oD + e] = pd[e];
+          r[oR + e] = pr[e];
+          float ga = 0.f;
+          if (pi[e] >= 0) {
+            const float* a = A + (v * N + pi[e]) * C;
+            for (int64_t ch = 0; ch < C; ++ch) ga += gp[ch] * a[ch];
+          }
+          r[oG + e] = ga;
+        }
+        for (int64_t e = 0; e < K && pi[e] >= 0 && pd[e] <= d0 + merge; ++e) {
+          den += pr[e];
+          gnum += pr[e] * r[oG + e];
+        }
+        r[0] = d0;
+        r[1] = den;
+        r[2] = gnum;
+      }
+    });
+    const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1], inv_f = 1.f / f;
+    const float* Rv = Rm + v * 9;
+    const float* PLv = PL + v * N * 3;
+    const int32_t* Iv = I + v * HW * K;
+    // A task is a run of consecutive (spatially sorted) points: their windows overlap in the
+    // record buffer. Each point is one task's, so it owns its gsum row (no race, view order kept).
+    dynamic_for(nchunks, 1, [&](int64_t task) {
+      const int64_t k_begin = task * kChunk, k_end = std::min(N, k_begin + kChunk);
+      for (int64_t k = k_begin; k < k_end; ++k) {
+        const float* s = P + (v * N + k) * kFields;
+        if (!(s[9] > 0.f)) continue;
+        const float u = s[0], vv = s[1], z = s[6], nk = s[5];
+        const float z_f = z * inv_f;  // camera units per pixel at the point's depth
+        const float X = (u - cx) * z_f, Y = (vv - cy) * z_f;
+        const float* wk = A + (v * N + k) * C;
+        const float* pl = PLv + k * 3;
+        const float slope = kMaxSlope * z_f;  // plane-depth clamp per pixel of distance
+        const int ic = (int)std::floor(vv), jc = (int)std::floor(u);
+        double acc[3] = {0, 0, 0};
+        for (int64_t dy = -window; dy <= window; dy += stride) {
+          const int64_t i = ic + dy;
+          if (i < 0 || i >= H) continue;
+          const float py = (float)i + 0.5f;
+          for (int64_t dx = -window; dx <= window; dx += stride) {
+            const int64_t j = jc + dx;
+            if (j < 0 || j >= W) continue;
+            const float* r = REC + (i * W + j) * RS;
+            if (r[5] == 0.f) continue;
+            const int32_t* pi = Iv + (i * W + j) * K;
+            const float* pd = r + oD;
+            const float* pr = r + oR;
+            const float* pg = r + oG;
+            const float d0 = r[0];
+            int ek = -1;  // position of k in the cache
+            for (int e = 0; e < K && pi[e] >= 0; ++e)
+              if (pi[e] == (int32_t)k) { ek = e; break; }
+            const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
+            const float px = (float)j + 0.5f;
+            float zp = 0.f;  // k's tangent-plane depth at the pixel: only needed when k is not visible
+            float den, gn;   // sum rho and sum rho g.w of the visible set after the change
+            int kase;        // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
+            if (k_visible) {
+              kase = 2;
+              if (ek > 0) {  // the front stays: the visible set loses k only
+                den = r[1] - pr[ek];
+                gn = r[2] - pr[ek] * pg[ek];
+                if (!(den > 0.f)) den = 0.f;
+              } else {  // k was the front: the next entry is the new front, may reveal others
+                den = 0.f;
+                gn = 0.f;
+                if (K > 1 && pi[1] >= 0) {
+                  const float lim = pd[1] + merge;
+                  for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+                    den += pr[e];
+                    gn += pr[e] * pg[e];
+                  }
+                }
+              }
+            } else {
+              // plane_depth() without its square root unless the slope clamp applies
+              const float iz = pl[0] * px + pl[1] * py + pl[2];
+              zp = iz > 0.f ? 1.f / iz : z;
+              const float d2 = (px - u) * (px - u) + (py - vv) * (py - vv);
+              const float dz = zp - z;
+              if (dz * dz > slope * slope * d2) {
+                const float dmax = slope * std::sqrt(d2);
+                zp = std::min(std::max(zp, z - dmax), z + dmax);
+              }
+              kase = (pi[0] < 0 || zp <= d0 + merge) ? 0 : 1;
+              float gw = 0.f;
+              for (int64_t ch = 0; ch < C; ++ch) gw += r[6 + ch] * wk[ch];
+              den = nk;
+              gn = nk * gw;
+              if (kase == 1 || zp >= d0) {  // merges with the current visible set
+                den += r[1];
+                gn += r[2];
+              } else if (pi[0] >= 0) {  // k becomes the front: entries beyond zp + T drop out
+                const float lim = zp + merge;
+                for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
                   den += pr[e];
-                  const float* a = A + (v * N + pi[e]) * C;
-                  for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
+                  gn += pr[e] * pg[e];
                 }
               }
             }
-          } else {
-            zp = plane_depth(PL + (v * N + k) * 3, px, py, z,
-                             std::sqrt((px - u) * (px - u) + (py - vv) * (py - vv)), f);
-            kase = (pi[0] < 0 || zp <= d0 + merge) ? 0 : 1;
-            den = nk;
-            for (int64_t ch = 0; ch < C; ++ch) num[ch] = nk * wk[ch];
-            if (kase == 1 || zp >= d0) {  // merges with the current visible set
-              den += sm[1];
-              for (int64_t ch = 0; ch < C; ++ch) num[ch] += sm[2 + ch];
-            } else if (pi[0] >= 0) {  // k becomes the front: entries beyond zp + T drop out
-              const float lim = zp + merge;
-              for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
-                den += pr[e];
-                const float* a = A + (v * N + pi[e]) * C;
-                for (int64_t ch = 0; ch < C; ++ch) num[ch] += pr[e] * a[ch];
-              }
-            }
-          }
-          const float* ip = IMG + g * C;
-          float gd = 0.f;
-          for (int64_t ch = 0; ch < C; ++ch) {
-            const float inew = den > 0.f ? num[ch] / den : BG[ch];
-            gd += gp[ch] * (inew - ip[ch]);
-          }
-          if (mode == 0) {  // dss: linearised step between the two visibility states
-            if (!(gd < 0.f)) continue;  // Eq. filteredG
-            if (kase == 2) {
-              const float ddx = px - u, ddy = py - vv;
-              const float sd = std::sqrt(ddx * ddx + ddy * ddy);
-              if (sd < 1e-6f) continue;
-              const float ux = ddx / sd, uy = ddy / sd;
-              const float qu = quad(s, ux, uy);
-              const float r = std::sqrt(2.f * cutoff / std::max(qu, 1e-20f));
-              const float steps[2] = {-(std::max(r - sd, 0.f)), r + sd};
-              for (int m = 0; m < 2; ++m) {
-                const float mx = steps[m] * ux * z / f, my = steps[m] * uy * z / f;
-                const float coef = gd / (mx * mx + my * my + eps);
+            const float gd = (den > 0.f ? gn / den : r[4]) - r[3];
+            if (mode == 0) {  // dss: linearised step between the two visibility states
+              if (!(gd < 0.f)) continue;  // Eq. filteredG
+              if (kase == 2) {
+                const float ddx = px - u, ddy = py - vv;
+                const float sd = std::sqrt(ddx * ddx + ddy * ddy);
+                if (sd < 1e-6f) continue;
+                const float inv_sd = 1.f / sd;
+                const float ux = ddx * inv_sd, uy = ddy * inv_sd;
+                const float qu = quad(s, ux, uy);
+                const float rr = std::sqrt(2.f * cutoff / std::max(qu, 1e-20f));
+                const float steps[2] = {-(std::max(rr - sd, 0.f)), rr + sd};
+                for (int m = 0; m < 2; ++m) {
+                  const float mx = steps[m] * ux * z_f, my = steps[m] * uy * z_f;
+                  const float coef = gd / (mx * mx + my * my + eps);
+                  acc[0] += coef * mx;
+                  acc[1] += coef * my;
+                }
+              } else {
+                const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
+                const float zt_f = zt * inv_f;
+                const float mx = (px - cx) * zt_f - X, my = (py - cy) * zt_f - Y, mz = zt - zp;
+                const float coef = gd / (mx * mx + my * my + mz * mz + eps);
                 acc[0] += coef * mx;
                 acc[1] += coef * my;
+                acc[2] += coef * mz;
               }
-            } else {
-              const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
-              const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - zp;
-              const float coef = gd / (mx * mx + my * my + mz * mz + eps);
-              acc[0] += coef * mx;
-              acc[1] += coef * my;
-              acc[2] += coef * mz;
+            } else {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
+              const float ddx = px - u, ddy = py - vv;
+              const float q = quad(s, ddx, ddy);
+              const float h = std::exp(-0.5f * q);
+              const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
+              const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);  // dh/du_k = h Sigma^-1 d
+              const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
+              const float c = sgn * gd;
+              acc[0] += c * (f / z) * gu;
+              acc[1] += c * (f / z) * gv;
+              acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
             }
-          } else {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
-            const float ddx = px - u, ddy = py - vv;
-            const float q = quad(s, ddx, ddy);
-            const float h = std::exp(-0.5f * q);
-            const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
-            const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);  // dh/du_k = h Sigma^-1 d
-            const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
-            const float c = sgn * gd;
-            acc[0] += c * (f / z) * gu;
-            acc[1] += c * (f / z) * gv;
-            acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
           }
         }
+        double* gk = gsum.data() + k * 3;  // world gradient = R^T acc
+        for (int a = 0; a < 3; ++a) gk[a] += Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
       }
-      const float* Rv = Rm + v * 9;  // world gradient = R^T acc
-      double* gk = gview.data() + (v * N + k) * 3;
-      for (int a = 0; a < 3; ++a) gk[a] = Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
-    }
-  });
-  at::parallel_for(0, N, 1024, [&](int64_t k0, int64_t k1) {
-    for (int64_t k = k0; k < k1; ++k) {
-      double gw[3] = {0, 0, 0};
-      for (int64_t v = 0; v < V; ++v)
-        for (int a = 0; a < 3; ++a) gw[a] += gview[(v * N + k) * 3 + a];
-      for (int a = 0; a < 3; ++a) G[k * 3 + a] = (float)gw[a];
-    }
-  });
+    });
+  }
+  for (int64_t e = 0; e < N * 3; ++e) G[e] = (float)gsum[e];
   return out;
 }
 
