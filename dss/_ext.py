@@ -95,6 +95,12 @@ def load_cpu():
         return mod
 
 
+def loaded_cpu():
+    """The CPU module if it has already been built in this process, else None (never builds:
+    for optional fast paths, e.g. the fused SMAPE, that must not start a compile)."""
+    return _cache.get("dss_cpu")
+
+
 def cpu_available() -> bool:
     return load_cpu() is not None
 

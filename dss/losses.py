@@ -23,6 +23,39 @@ __all__ = ["smape_loss", "l1_loss", "SmapeLoss", "L1Loss", "SMAPE_EPS"]
 SMAPE_EPS = 1e-5  # paper: "the value of epsilon is typically chosen as 1e-5"
 
 
+class _FusedSmape(torch.autograd.Function):
+    """mean SMAPE through the C++ ``smape_sum`` (one pass for the value and its derivative).
+
+    The torch expression in :func:`smape_loss` is the reference; this twin gives the same value
+    and gradient to float rounding (tests/test_losses.py) in one pass over the images instead of
+    ~12 elementwise operators and their autograd graph (12 views at 256x256: 21 -> ~3 ms).
+    """
+
+    @staticmethod
+    def forward(ctx, pred, target, eps, scale):
+        from . import _ext
+
+        total, grad = _ext.loaded_cpu().smape_sum(pred.detach(), target.detach(), float(eps), pred.requires_grad)
+        ctx.save_for_backward(grad)
+        ctx.scale = scale
+        return (total * scale).to(pred.dtype)
+
+    @staticmethod
+    def backward(ctx, go):
+        (grad,) = ctx.saved_tensors
+        return grad * (go * ctx.scale), None, None, None
+
+
+def _fused_smape_ok(pred: torch.Tensor, target: torch.Tensor, mask, reduction: str) -> bool:
+    """The fused path covers the optimiser's case: CPU float32, no mask, mean, target constant,
+    and the C++ module already built (the loss never starts a compile)."""
+    from . import _ext
+
+    return (mask is None and reduction == "mean" and pred.device.type == "cpu" and pred.dtype == torch.float32
+            and target.dtype == torch.float32 and not (torch.is_grad_enabled() and target.requires_grad)
+            and pred.numel() > 0 and _ext.loaded_cpu() is not None)
+
+
 def _check_images(pred: torch.Tensor, target: torch.Tensor) -> None:
     if pred.dim() != 4:
         raise ValueError(f"images must have shape (V, H, W, C), got pred {tuple(pred.shape)}")
@@ -90,6 +123,9 @@ def smape_loss(
         Scalar (or (V, H, W) map). Each channel term is at most 1 because |a-b| <= |a|+|b|.
     """
     _check_images(pred, target)
+    if channel_reduction in ("sum", "mean") and _fused_smape_ok(pred, target, mask, reduction):
+        count = pred.numel() // pred.shape[-1] if channel_reduction == "sum" else pred.numel()
+        return _FusedSmape.apply(pred, target, eps, 1.0 / max(count, 1))
     per = (pred - target).abs() / (pred.abs() + target.abs() + eps)
     return _reduce(_channel_reduce(per, channel_reduction), mask, reduction)
 

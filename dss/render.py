@@ -275,6 +275,36 @@ class _CppBlend(torch.autograd.Function):
         return g_packed, g_attrs, g_points, None, None, None, None, None
 
 
+class _CppProject(torch.autograd.Function):
+    """:func:`dss.splats.project_splats` with the C++ kernels in both directions.
+
+    forward: ``project_splats_forward``; backward: ``project_splats_backward`` gives dL/dpoints and
+    dL/dnormals from dL/dpacked (sigma and cameras fixed; render() uses the torch version when
+    they require grad). One pass over (view, point) each way instead of ~60 torch operators on
+    (V, N) tensors and their autograd graph (20K points, 12 views: 30 -> ~5 ms per step).
+    """
+
+    @staticmethod
+    def forward(ctx, points, normals, R, t, focal, principal, sigma, settings):
+        mod = _ext.load_cpu()
+        packed = mod.project_splats_forward(
+            points.detach(), normals.detach(), R, t, focal, principal, sigma, float(settings.cutoff),
+            bool(settings.backface_culling), float(settings.znear), float(settings.filter_variance))
+        ctx.save_for_backward(points.detach(), normals.detach(), R, t, focal, principal, sigma, packed)
+        ctx.settings = settings
+        return packed
+
+    @staticmethod
+    def backward(ctx, grad):
+        points, normals, R, t, focal, principal, sigma, packed = ctx.saved_tensors
+        s = ctx.settings
+        gp, gn = _ext.load_cpu().project_splats_backward(points, normals, R, t, focal, principal, sigma, packed,
+                                                         grad.contiguous().float(), float(s.cutoff),
+                                                         float(s.filter_variance))
+        return (gp.to(points.dtype) if ctx.needs_input_grad[0] else None,
+                gn.to(normals.dtype) if ctx.needs_input_grad[1] else None, None, None, None, None, None, None)
+
+
 def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras):
     if not isinstance(points, torch.Tensor) or points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be a (N, 3) tensor, got {getattr(points, 'shape', type(points))}")
@@ -324,14 +354,11 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
         colors = None if colors is None else colors[order]
         if sigma_t.ndim == 1 and sigma_t.numel() == order.numel():
             sigma_t = sigma_t[order]
-    needs_grad_inputs = torch.is_grad_enabled() and (points.requires_grad or normals.requires_grad)
-    if backend == "cpp" and not needs_grad_inputs:
-        # forward only: the fused C++ projection (same formulas as project_splats)
-        packed = _ext.load_cpu().project_splats_forward(
-            points.detach(), normals.detach(), cameras.R, cameras.t, cameras.focal, cameras.principal,
-            sigma_t.detach().reshape(-1), float(settings.cutoff), bool(settings.backface_culling), float(settings.znear),
-            float(settings.filter_variance))
-        splats = Splats(packed)
+    camera_grad = any(x.requires_grad for x in (cameras.R, cameras.t, cameras.focal, cameras.principal))
+    if backend == "cpp" and not sigma_t.requires_grad and not camera_grad:
+        # the fused C++ projection (same formulas as project_splats) and its hand-written backward
+        splats = Splats(_CppProject.apply(points, normals, cameras.R, cameras.t, cameras.focal, cameras.principal,
+                                          sigma_t.detach().reshape(-1), settings))
     else:
         splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling,
                                 settings.znear, settings.filter_variance)

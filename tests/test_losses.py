@@ -95,3 +95,29 @@ def test_bad_shapes():
         l1_loss(torch.rand(2, 2, 3), torch.rand(2, 2, 3))
     with pytest.raises(ValueError, match="broadcast"):
         smape_loss(torch.rand(1, 2, 2, 3), torch.rand(1, 2, 2, 3), torch.ones(3, 3))
+
+
+@pytest.mark.parametrize("channel_reduction", ["sum", "mean"])
+def test_fused_smape_equals_the_torch_expression(channel_reduction, cpp_backend):
+    """With the C++ module loaded, smape_loss takes the one-pass fused kernel (CPU, no mask,
+    mean); value and gradient equal the torch expression's, zeros (sign 0) included."""
+    from dss import _ext
+    from dss.losses import _fused_smape_ok
+
+    g = torch.Generator().manual_seed(0)
+    pred = torch.rand(2, 9, 11, 3, generator=g) - 0.3
+    target = torch.rand(2, 9, 11, 3, generator=g)
+    pred[0, :2] = 0.0
+    target[0, :1] = 0.0  # both zero: the eps-only denominator
+    target[1, 3] = pred[1, 3]  # equal: sign(d) = 0
+    assert _ext.loaded_cpu() is not None and _fused_smape_ok(pred, target, None, "mean")
+    p1, p2 = pred.clone().requires_grad_(), pred.clone().requires_grad_()
+    fused = smape_loss(p1, target, channel_reduction=channel_reduction)
+    fused.backward()
+    per = (p2 - target).abs() / (p2.abs() + target.abs() + 1e-5)
+    ref = per.sum(-1).mean() if channel_reduction == "sum" else per.mean()
+    ref.backward()
+    torch.testing.assert_close(fused, ref, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(p1.grad, p2.grad, rtol=1e-5, atol=1e-6)
+    assert p1.grad.abs().max() > 0 and fused.grad_fn is not None
+    assert not _fused_smape_ok(pred, target, torch.ones(2, 9, 11), "mean")  # masks take the torch path

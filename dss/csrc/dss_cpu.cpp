@@ -625,9 +625,188 @@ torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals
   return out;
 }
 
+// Backward of project_splats_forward (the same formulas as dss/splats.py project_splats): given
+// dL/dpacked (V,N,10), returns dL/dpoints and dL/dnormals (N,3) with sigma, cameras and the
+// filter held fixed. Fields 0-8 (u, v, conic a, b2, c, norm, depth, rx, ry) carry gradients; the
+// valid flag is a step function. Culled splats (valid = 0) get none, as the renderer never reads
+// them. Per-view gradients are summed over views in view order (deterministic at any thread count).
+std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::Tensor normals, torch::Tensor R,
+                                                   torch::Tensor t, torch::Tensor focal, torch::Tensor principal,
+                                                   torch::Tensor sigma, torch::Tensor packed, torch::Tensor grad,
+                                                   double cutoff, double filter_variance) {
+  points = points.contiguous().to(torch::kFloat32);
+  normals = normals.contiguous().to(torch::kFloat32);
+  R = R.contiguous().to(torch::kFloat32);
+  t = t.contiguous().to(torch::kFloat32);
+  focal = focal.contiguous().to(torch::kFloat32);
+  packed = packed.contiguous().to(torch::kFloat32);
+  grad = grad.contiguous().to(torch::kFloat32);
+  const int64_t N = points.size(0), V = R.size(0);
+  TORCH_CHECK(packed.size(0) == V && packed.size(1) == N && packed.size(2) == kFields, "packed must be (V,N,10)");
+  TORCH_CHECK(grad.sizes() == packed.sizes(), "grad must be shaped like packed");
+  sigma = sigma.to(torch::kFloat32).expand({N}).contiguous();
+  const float* Pp = points.data_ptr<float>();
+  const float* Nn = normals.data_ptr<float>();
+  const float* Rr = R.data_ptr<float>();
+  const float* Tt = t.data_ptr<float>();
+  const float* Ff = focal.data_ptr<float>();
+  const float* Sg = sigma.data_ptr<float>();
+  const float* PK = packed.data_ptr<float>();
+  const float* GK = grad.data_ptr<float>();
+  const float fv = (float)filter_variance, C = (float)cutoff;
+  std::vector<float> gview((size_t)(V * N * 6));  // per view: dL/dp (3), dL/dn (3), world frame
+  const int64_t nb = (N + 1023) / 1024;
+  dynamic_for(V * nb, 1, [&](int64_t item) {
+    const int64_t v = item / nb, k0 = (item % nb) * 1024, k1 = std::min(N, k0 + 1024);
+    const float* Rv = Rr + v * 9;
+    const float f = Ff[v];
+    for (int64_t k = k0; k < k1; ++k) {
+      float* out = gview.data() + (v * N + k) * 6;
+      const float* pk = PK + (v * N + k) * kFields;
+      const float* gk = GK + (v * N + k) * kFields;
+      if (!(pk[9] > 0.f)) {
+        for (int a = 0; a < 6; ++a) out[a] = 0.f;
+        continue;
+      }
+      const float* p = Pp + k * 3;
+      const float* n = Nn + k * 3;
+      float pc[3], nc[3];
+      for (int a = 0; a < 3; ++a) {
+        pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + Tt[v * 3 + a];
+        nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
+      }
+      const float X = pc[0], Y = pc[1], Z = pc[2];  // valid: Z > znear, so Zs = Z
+      const float nl2 = nc[0] * nc[0] + nc[1] * nc[1] + nc[2] * nc[2];
+      const float inv = 1.f / std::sqrt(nl2 + 1e-20f);
+      const float nh[3] = {nc[0] * inv, nc[1] * inv, nc[2] * inv};
+      const float iZ = 1.f / Z;
+      const float m1[3] = {f * iZ, 0.f, -f * X * iZ * iZ};
+      const float m2[3] = {0.f, f * iZ, -f * Y * iZ * iZ};
+      const float m1n = m1[0] * nh[0] + m1[2] * nh[2];
+      const float m2n = m2[1] * nh[1] + m2[2] * nh[2];
+      const float A11 = m1[0] * m1[0] + m1[2] * m1[2] - m1n * m1n;
+      const float A12 = m1[2] * m2[2] - m1n * m2n;
+      const float A22 = m2[1] * m2[1] + m2[2] * m2[2] - m2n * m2n;
+      const float w = nh[0] * X + nh[1] * Y + nh[2] * Z;
+      const float detJ = f * f * std::fabs(w) * iZ * iZ * iZ;
+      const float s2 = Sg[k] * Sg[k];
+      const float S11 = s2 * A11 + fv, S12 = s2 * A12, S22 = s2 * A22 + fv;
+      const float detS = s2 * s2 * detJ * detJ + s2 * fv * (A11 + A22) + fv * fv;
+      const float iS = 1.f / detS;
+      const float sqS = std::sqrt(detS);
+      // outputs: u v a b2 c norm depth rx ry
+      const float gu = gk[0], gv = gk[1], ga = gk[2], gb2 = gk[3], gc = gk[4], gnorm = gk[5], gz = gk[6];
+      const float grx = gk[7], gry = gk[8];
+      const float k2pi = 1.f / (2.f * 3.14159265358979f);
+      float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
+      // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
+      if (pk[7] > 0.f) gS11 += grx * C / pk[7];
+      if (pk[8] > 0.f) gS22 += gry * C / pk[8];
+      const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
+      const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
+      const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
+      float gm1[3], gm2[3];
+      for (int a = 0; a < 3; ++a) {
+        gm1[a] = 2.f * gA11 * m1[a] + gA12 * m2[a];
+        gm2[a] = 2.f * gA22 * m2[a] + gA12 * m1[a];
+      }
+      const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
+      const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
+      float gnh[3];
+      for (int a = 0; a < 3; ++a) {
+        gm1[a] += gm1n * nh[a];
+        gm2[a] += gm2n * nh[a];
+        gnh[a] = gm1n * m1[a] + gm2n * m2[a];
+      }
+      // detJ = f^2 |w| / Z^3
+      const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
+      gnh[0] += gw * X;
+      gnh[1] += gw * Y;
+      gnh[2] += gw * Z;
+      float gX = gw * nh[0], gY = gw * nh[1];
+      float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
+      // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
+      gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
+      gX += -gm1[2] * f * iZ * iZ;
+      gY += -gm2[2] * f * iZ * iZ;
+      // u = f X / Z + cx, v = f Y / Z + cy
+      gX += gu * f * iZ;
+      gY += gv * f * iZ;
+      gZ += -(gu * X + gv * Y) * f * iZ * iZ;
+      // nh = nc / sqrt(|nc|^2 + 1e-20)
+      const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
+      float gnc[3];
+      for (int a = 0; a < 3; ++a) gnc[a] = inv * gnh[a] - inv * inv * inv * dn * nc[a];
+      const float gpc[3] = {gX, gY, gZ};
+      for (int a = 0; a < 3; ++a) {  // world = R^T camera
+        out[a] = Rv[0 * 3 + a] * gpc[0] + Rv[1 * 3 + a] * gpc[1] + Rv[2 * 3 + a] * gpc[2];
+        out[3 + a] = Rv[0 * 3 + a] * gnc[0] + Rv[1 * 3 + a] * gnc[1] + Rv[2 * 3 + a] * gnc[2];
+      }
+    }
+  });
+  auto gp = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
+  auto gn = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
+  float* GP = gp.data_ptr<float>();
+  float* GN = gn.data_ptr<float>();
+  at::parallel_for(0, N, 1024, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) {
+      float s[6] = {0, 0, 0, 0, 0, 0};
+      for (int64_t v = 0; v < V; ++v)
+        for (int a = 0; a < 6; ++a) s[a] += gview[(v * N + k) * 6 + a];
+      for (int a = 0; a < 3; ++a) {
+        GP[k * 3 + a] = s[a];
+        GN[k * 3 + a] = s[3 + a];
+      }
+    }
+  });
+  return {gp, gn};
+}
+
+// SMAPE (paper Eq. smape) in one pass: sum over all elements of |x - y| / (|x| + |y| + eps), and
+// when asked its derivative with respect to x, sign(x - y) / s - |x - y| sign(x) / s^2 with
+// s = |x| + |y| + eps (sign(0) = 0, as torch's abs backward). dss/losses.py scales both to the
+// loss's mean; the torch expression there is the reference. Partial sums per block of 2^16
+// elements in double, added in block order: the same bits at any thread count.
+std::vector<torch::Tensor> smape_sum(torch::Tensor pred, torch::Tensor target, double eps_d, bool with_grad) {
+  TORCH_CHECK(pred.sizes() == target.sizes(), "pred and target must have the same shape");
+  pred = pred.contiguous().to(torch::kFloat32);
+  target = target.contiguous().to(torch::kFloat32);
+  const int64_t n = pred.numel();
+  const float eps = (float)eps_d;
+  auto grad = with_grad ? torch::empty_like(pred) : torch::empty({0}, pred.options());
+  const float* X = pred.data_ptr<float>();
+  const float* Y = target.data_ptr<float>();
+  float* Gd = with_grad ? grad.data_ptr<float>() : nullptr;
+  constexpr int64_t kBlock = 1 << 16;
+  const int64_t nblocks = (n + kBlock - 1) / kBlock;
+  std::vector<double> part((size_t)nblocks, 0.0);
+  at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
+    for (int64_t b = b0; b < b1; ++b) {
+      const int64_t e0 = b * kBlock, e1 = std::min(n, e0 + kBlock);
+      double acc = 0.0;
+      for (int64_t e = e0; e < e1; ++e) {
+        const float x = X[e], y = Y[e];
+        const float d = x - y, ad = std::fabs(d);
+        const float s = std::fabs(x) + std::fabs(y) + eps;
+        acc += ad / s;
+        if (Gd) {
+          const float sd = (d > 0.f) - (d < 0.f), sx = (x > 0.f) - (x < 0.f);
+          Gd[e] = sd / s - ad * sx / (s * s);
+        }
+      }
+      part[b] = acc;
+    }
+  });
+  double total = 0.0;
+  for (double p : part) total += p;
+  return {torch::full({}, total, torch::TensorOptions().dtype(torch::kFloat64)), grad};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
+  m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
+  m.def("smape_sum", &smape_sum, "SMAPE sum and its derivative in one pass (CPU)");
   m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CPU)");
 }
