@@ -101,6 +101,13 @@ def loaded_cpu():
     return _cache.get("dss_cpu")
 
 
+def empty_cache() -> int:
+    """Free the output blocks the C++ kernels keep parked for reuse (up to 512 MB; see
+    ``pooled_empty`` in dss_cpu.cpp); returns the bytes released (0 when the module is not loaded)."""
+    mod = loaded_cpu()
+    return int(mod.empty_cache()) if mod is not None else 0
+
+
 def cpu_available() -> bool:
     return load_cpu() is not None
 

@@ -201,3 +201,28 @@ def test_cuda_backend_needs_cuda_tensors():
     cams = axis_camera(8, 8)
     with pytest.raises(ValueError, match="backend 'cuda' needs CUDA tensors"):
         render(torch.zeros(3, 3), torch.zeros(3, 3), cams, backend="cuda")
+
+
+def test_reused_output_blocks_are_fully_rewritten(cpp_backend):
+    """The C++ kernels hand out parked output blocks again once nothing refers to them
+    (dss_cpu.cpp pooled_empty). A dense render followed by a sparse one of the same size must
+    still give the sparse render's cache: every slot not written by a splat is -1 / inf / 0 and
+    the mask false, as the reference rasteriser's."""
+    from dss import _ext
+    from dss.render import rasterize
+    from dss.splats import project_splats
+
+    _ext.empty_cache()  # only this test's blocks parked: the sparse render must get them back
+    pts, nrm, cams, sigma, _ = random_scene(5, n=3000)
+    dense = rasterize(project_splats(pts, nrm, cams, sigma * 2, 1.0), cams.image_size, 5, 1.0, 0.05, cpp_backend)
+    assert (dense[0].idx[..., -1] >= 0).float().mean() > 0.05  # the last slot is used somewhere
+    addresses = {t.data_ptr() for t in (dense[0].idx, dense[0].depth, dense[0].rho, dense[2])}
+    del dense
+    sp = project_splats(pts[:40], nrm[:40], cams, sigma[:40], 1.0)
+    fa, _, ma = rasterize(sp, cams.image_size, 5, 1.0, 0.05, "reference")
+    fb, _, mb = rasterize(sp, cams.image_size, 5, 1.0, 0.05, cpp_backend)
+    assert {t.data_ptr() for t in (fb.idx, fb.depth, fb.rho, mb)} == addresses  # the blocks were reused
+    assert torch.equal(fa.idx, fb.idx) and torch.equal(fa.depth, fb.depth) and torch.equal(ma, mb)
+    assert torch.allclose(fa.rho, fb.rho, rtol=1e-5, atol=1e-7)
+    del fb, mb
+    assert _ext.empty_cache() > 0 and _ext.empty_cache() == 0  # parked again, then released
