@@ -1,13 +1,26 @@
-"""Count the renderer's work per workload and derive a floor time (issue: speed to the limit).
+"""Count the renderer's work per workload and derive floor times (issue: speed to the limit).
 
     python -m experiments.perf_counts [--out docs/perf_counts.json]
 
-For each workload (points x 12 views x 256^2) it counts, from the same splats the kernels see:
-valid splats (after back-face and near-plane culling), bounding-box pixel tests, accepted
-fragments (inside the cutoff ellipse) and cache entries written. With a per-test cost in
-floating-point operations and the bytes that must move (splats in, cache and image out), the
-floor is max(ops / measured arithmetic rate, bytes / measured memory bandwidth), both rates
-measured here with numpy on the same machine (all cores).
+For each workload (points x 12 views x 256^2) it counts, from one real optimisation step of the
+C++ backend (the cloud against a copy moved by 0.003 of the bbox diagonal, as dss-runtime-table):
+
+- forward: valid splats (after back-face and near-plane culling), projected splats (V x N),
+  bounding-box pixel tests, accepted fragments (inside the cutoff ellipse, approximated by
+  pi rx ry), and the image elements the SMAPE loss reads;
+- backward of a normal step: the visible cached fragments blend_backward visits, and the
+  projection's backward per (view, point);
+- backward of a position step: the same plus the visibility gradient's (point, view, pixel)
+  evaluations, counted exactly: window pixels (9 x 9 at window 4) inside the image whose loss
+  gradient is non-zero, the pixels the kernel evaluates.
+
+Each count is charged a cost in floating-point operations (constants below, from the kernels'
+arithmetic; a division or square root counts as one) and the bytes that must move at least once
+(splats in, the top-K cache and images out; the backward reads them again with the gradient).
+floor = max(flops / measured arithmetic rate, bytes / measured memory bandwidth) for the forward
+and for each kind's backward; the step floor is their sum. Both rates are measured here (a
+float32 matmul on all torch threads, which reaches the vector-FMA peak, and a numpy copy), so
+the floor is what perfectly vectorised code with no branch or latency stall would take.
 """
 
 from __future__ import annotations
@@ -28,6 +41,19 @@ from experiments.bench_render import benchmark_cloud, cameras_for, machine_info
 # weight (1), insertion (~K compares); per blended entry ~2C+1.
 FLOPS_TEST = 10
 FLOPS_ACCEPT = 30
+# per (view, point): the projection (rotation 18, Jacobian / conic / weight ~80) and its
+# backward (~150); per image element: SMAPE value and derivative (~10).
+FLOPS_PROJECT = 100
+FLOPS_PROJECT_BWD = 150
+FLOPS_LOSS = 10
+# per visible cached fragment in blend_backward: q and exp (~25), the per-channel and conic
+# accumulations (~2C + 15).
+FLOPS_BLEND_BWD = 45
+# per visibility evaluation: the cache search (K), the tangent-plane depth and case tests (~15),
+# g.w and the new blend (~2C + 6), g.(I_new - I) (3), the move and its coefficient (~20).
+FLOPS_VISIBILITY = 50
+POSITION_WINDOW = 4
+TARGET_NOISE = 0.003
 
 
 def measure_rates(seconds: float = 1.0) -> dict:
@@ -51,11 +77,41 @@ def measure_rates(seconds: float = 1.0) -> dict:
             "note": "flops: float32 matmul (torch, all threads) = the arithmetic peak; bytes: numpy copy (read+write)"}
 
 
+def _step_counts(pts, nrm, cams, sigma, s: RenderSettings) -> dict:
+    """Visible cached fragments and visibility evaluations of one position step (C++ backend)."""
+    from dss.losses import smape_loss
+    from dss.render import render
+
+    g = torch.Generator().manual_seed(1)
+    target = render(pts + TARGET_NOISE * torch.randn(pts.shape, generator=g), nrm, cams, s, sigma=sigma).images
+    p = pts.clone().requires_grad_()
+    out = render(p, nrm, cams, s, sigma=sigma)
+    (grad,) = torch.autograd.grad(smape_loss(out.images, target, channel_reduction="mean"), out.images)
+    frags = out.fragments
+    visible = int(frags.visible.sum())
+    # evaluations: for each valid splat, the window pixels inside the image with a non-zero
+    # gradient (a box sum over the non-zero map, padded so centres off the image count too)
+    w = s.window
+    nz = (grad != 0).any(-1).float()[:, None]  # (V, 1, H, W)
+    V, _, H, W = nz.shape
+    box = torch.nn.functional.conv2d(torch.nn.functional.pad(nz, (2 * w,) * 4), torch.ones(1, 1, 2 * w + 1, 2 * w + 1))
+    pk = out.splats.packed.detach()
+    valid = pk[..., 9] > 0
+    ii = torch.floor(pk[..., 1]).long() + w  # index into the map padded by w on each side
+    jj = torch.floor(pk[..., 0]).long() + w
+    inside = valid & (ii >= 0) & (ii < H + 2 * w) & (jj >= 0) & (jj < W + 2 * w)
+    vv = torch.arange(V)[:, None].expand_as(ii)
+    evals = float(box[vv[inside], 0, ii[inside], jj[inside]].sum())
+    return {"visible_fragments": visible, "visibility_evaluations": evals,
+            "nonzero_gradient_pixels": int(nz.sum()), "cache_entries": int((frags.idx >= 0).sum())}
+
+
 def count(n: int, views: int = 12, size: int = 256) -> dict:
     pts, nrm, src = benchmark_cloud(n)
     cams = cameras_for(pts, views, size)
-    s = RenderSettings()
-    sp = project_splats(pts, nrm, cams, auto_sigma(pts), s.cutoff, s.backface_culling, s.znear, s.filter_variance)
+    s = RenderSettings(window=POSITION_WINDOW)
+    sigma = auto_sigma(pts)
+    sp = project_splats(pts, nrm, cams, sigma, s.cutoff, s.backface_culling, s.znear, s.filter_variance)
     pk = sp.packed
     valid = pk[..., 9] > 0
     j0, j1, i0, i1 = bbox(pk, size, size)
@@ -64,10 +120,35 @@ def count(n: int, views: int = 12, size: int = 256) -> dict:
     accepted = (np.pi * pk[..., 7] * pk[..., 8] * valid).sum().item()
     tests = area.sum().item()
     K, C = s.K, 3
-    bytes_moved = (pk.numel() * 4 + views * size * size * (K * 12 + C * 4))
-    ops = tests * FLOPS_TEST + accepted * FLOPS_ACCEPT
+    pixels = views * size * size
+    cache_bytes = pixels * K * 12  # index, depth, weight per slot
+    image_bytes = pixels * C * 4
+    splat_bytes = pk.numel() * 4
+    step = _step_counts(pts, nrm, cams, sigma, s)
+    vn = views * n
+    # forward: projection, rasterisation (cache + image out), loss (two images in)
+    fwd_flops = tests * FLOPS_TEST + accepted * FLOPS_ACCEPT + vn * FLOPS_PROJECT + pixels * C * FLOPS_LOSS
+    fwd_bytes = splat_bytes + cache_bytes + image_bytes + 2 * image_bytes
+    # backward, normal step: blend backward reads the cache, image and gradient, writes the
+    # splat and attribute gradients; the projection backward reads them
+    nrm_flops = step["visible_fragments"] * FLOPS_BLEND_BWD + vn * FLOPS_PROJECT_BWD
+    nrm_bytes = cache_bytes + 2 * image_bytes + 2 * splat_bytes
+    # backward, position step: the same plus the visibility gradient (cache, image and gradient
+    # read once more)
+    pos_flops = nrm_flops + step["visibility_evaluations"] * FLOPS_VISIBILITY
+    pos_bytes = nrm_bytes + cache_bytes + 2 * image_bytes
     return {"points": n, "views": views, "image_size": size, "source": src, "valid_splats": int(valid.sum()),
-            "bbox_pixel_tests": tests, "accepted_fragments_approx": accepted, "flops": ops, "bytes": bytes_moved}
+            "bbox_pixel_tests": tests, "accepted_fragments_approx": accepted, **step,
+            "flops": fwd_flops, "bytes": fwd_bytes,
+            "backward": {"position": {"flops": pos_flops, "bytes": pos_bytes},
+                         "normal": {"flops": nrm_flops, "bytes": nrm_bytes}}}
+
+
+def floors(work: dict, rates: dict) -> dict:
+    """floor = max(flops / rate, bytes / bandwidth) in ms."""
+    c = 1e3 * work["flops"] / rates["flops_per_s"]
+    m = 1e3 * work["bytes"] / rates["bytes_per_s"]
+    return {"compute_ms": c, "memory_ms": m, "floor_ms": max(c, m)}
 
 
 def main(argv=None) -> int:
@@ -79,9 +160,12 @@ def main(argv=None) -> int:
     rows = []
     for n in args.sizes:
         r = count(n)
-        r["floor_ms_compute"] = 1e3 * r["flops"] / rates["flops_per_s"]
-        r["floor_ms_memory"] = 1e3 * r["bytes"] / rates["bytes_per_s"]
-        r["floor_ms"] = max(r["floor_ms_compute"], r["floor_ms_memory"])
+        fwd = floors(r, rates)
+        r["floor_ms_compute"], r["floor_ms_memory"], r["floor_ms"] = fwd["compute_ms"], fwd["memory_ms"], fwd["floor_ms"]
+        r["step_floor_ms"] = {}
+        for kind, work in r["backward"].items():
+            work.update(floors(work, rates))
+            r["step_floor_ms"][kind] = fwd["floor_ms"] + work["floor_ms"]
         rows.append(r)
         print(json.dumps(r))
     from dss.io_utils import atomic_write_json

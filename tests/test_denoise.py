@@ -143,8 +143,16 @@ def _normalised(points):
 
 
 def test_pipeline_improves_chamfer(case):
-    """The image term matters: the oracle reference (clean renders) beats the regularisers alone
-    (identity reference), and both beat the noisy input; so does L0."""
+    """The image term matters: the oracle reference (clean renders) beats the identity reference
+    (the current renders: the image term only holds the points where they start, and the
+    regularisers act alone) and the noisy input; so does L0.
+
+    Whether the identity run beats the noisy input is not asserted: it stays within 1% of it
+    (3.63 vs 3.61 here). It used to pass because the no-grad reference render (C++ projection)
+    and the optimiser's render (torch projection) differed in the last bits, and SMAPE's
+    derivative is sign(d) / s however small d is: full-strength gradients from rounding noise.
+    Both renders now use the same projection, so the identity reference gives exactly zero image
+    gradient at the start of each cycle."""
     from experiments.reference_generators import L0Reference, SpecViewSampler
 
     spec = load_render_spec(image_size=[64, 64])
@@ -166,7 +174,8 @@ def test_pipeline_improves_chamfer(case):
         assert ref.calls == 2 and res.history["steps"] == 40
         scores[name] = evaluate(res.points.numpy(), clean.numpy(), None, "paper").chamfer
     before = evaluate(noisy.numpy(), clean.numpy(), None, "paper").chamfer
-    assert scores["oracle"] < scores["identity"] < before, (before, scores)
+    assert scores["oracle"] < scores["identity"] and scores["oracle"] < 0.9 * before, (before, scores)
+    assert abs(scores["identity"] - before) < 0.05 * before, (before, scores)
     assert scores["l0"] < before, (before, scores)
 
 

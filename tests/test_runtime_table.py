@@ -92,7 +92,9 @@ def test_floor_comparison_and_targets(tmp_path, cpp_backend):
     """With a perf_counts JSON for the workload, the ratios and the issue's targets are derived."""
     counts = {"machine": {"torch_threads": 1}, "rates": {"flops_per_s": 1e10, "bytes_per_s": 1e10},
               "workloads": [{"points": 20000, "views": 2, "image_size": 32, "flops": 2e6, "bytes": 4e6,
-                             "floor_ms": 0.4}]}
+                             "floor_ms": 0.4, "step_floor_ms": {"position": 1.5, "normal": 0.9},
+                             "backward": {"position": {"flops": 1e7, "bytes": 8e6},
+                                          "normal": {"flops": 1e6, "bytes": 6e6}}}]}
     cpath = tmp_path / "counts.json"
     cpath.write_text(json.dumps(counts))
     result = rt.run(["--quick", "--workloads", "filtering", "--points", "20000",
@@ -100,15 +102,21 @@ def test_floor_comparison_and_targets(tmp_path, cpp_backend):
     fl = result["floor"]
     (w,) = fl["workloads"]
     cpp = result["workloads"][0]["cpp"]["per_kind"]
+    step_floor = {"position": 1.5, "normal": 0.9}
     for kind in rt.KINDS:
+        m = w["measured"]["cpp"][kind]
         step = cpp[kind]["forward_ms"] + cpp[kind]["backward_ms"]
-        assert w["measured"]["cpp"][kind]["ratio_step_to_floor"] == pytest.approx(step / 0.4)
-    h100 = 1e3 * max(2e6 / rt.H100_PUBLISHED["flops_per_s"], 4e6 / rt.H100_PUBLISHED["bytes_per_s"])
-    assert w["h100_published_floor_ms"] == pytest.approx(h100)
+        assert m["ratio_step_to_floor"] == pytest.approx(step / step_floor[kind])
+        assert m["ratio_forward_to_floor"] == pytest.approx(cpp[kind]["forward_ms"] / 0.4)
+    ms = lambda f, b: 1e3 * max(f / rt.H100_PUBLISHED["flops_per_s"], b / rt.H100_PUBLISHED["bytes_per_s"])  # noqa: E731
+    assert w["h100_published_floor_ms"] == pytest.approx(ms(2e6, 4e6))
+    assert w["h100_published_step_floor_ms"]["position"] == pytest.approx(ms(2e6, 4e6) + ms(1e7, 8e6))
     cpu_targets = [t for t in fl["targets"] if t["target"].startswith("2 CPU cores")]
     assert len(cpu_targets) == len(rt.KINDS)
     for t in cpu_targets:
-        assert t["met"] == (t["measured_ms"] <= 250 and t["measured_ms"] <= 4 * 0.4)
+        kind = "position" if "position step" in t["target"] else "normal"
+        assert t["floor_ms"] == step_floor[kind]
+        assert t["met"] == (t["measured_ms"] <= 250 and t["measured_ms"] <= 4 * step_floor[kind])
     (gpu,) = [t for t in fl["targets"] if "H100" in t["target"]]
     if not torch.cuda.is_available():
         assert gpu["met"] is None and gpu["status"] == "not measured (no GPU)"
