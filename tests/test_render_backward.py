@@ -116,15 +116,18 @@ def test_gradcheck_smooth_part_double():
 @pytest.mark.parametrize("mode", ["dss", "rbf"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_cpp_and_reference_gradients_agree(seed, mode, cpp_backend):
+    """Seeds cover the kernel's compiled variants: (K, channels) = (5, 3), any (3, 3), (5, 1)."""
     pts, nrm, cams, sigma, colors = random_scene(seed, n=300)
     tgt_pts = pts + 0.05 * torch.randn(pts.shape, generator=torch.Generator().manual_seed(seed + 50))
-    s = RenderSettings(merge_threshold=0.05, window=5, window_stride=1 + seed % 2, gradient=mode)
-    tgt = render(tgt_pts, nrm, cams, s, shading="sun", sigma=sigma).images
+    s = RenderSettings(K=(5, 3, 5)[seed], merge_threshold=0.05, window=5, window_stride=1 + seed % 2, gradient=mode)
+    shading = ("sun", "sun", "mask")[seed]
+    tgt = render(tgt_pts, nrm, cams, s, shading=shading, sigma=sigma).images
     grads = {}
     for backend in ("reference", cpp_backend):
         p = pts.clone().requires_grad_()
         n = nrm.clone().requires_grad_()
-        img = render(p, n, cams, s, shading="sun", sigma=sigma, backend=backend).images
+        img = render(p, n, cams, s, shading=shading, sigma=sigma, backend=backend).images
+        assert img.shape[-1] == (1 if shading == "mask" else 3)
         # squared error: an L1 sign flips where the two backends' images differ by one ulp
         ((img - tgt) ** 2).sum().backward()
         grads[backend] = (p.grad, n.grad)

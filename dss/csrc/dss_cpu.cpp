@@ -18,6 +18,7 @@
 #include <limits>
 #include <map>
 #include <mutex>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -377,6 +378,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   rec.resize((size_t)(HW * RS));
   float* REC = rec.data();
   std::vector<double> gsum((size_t)(N * 3), 0.0);  // world gradient, summed over views in view order
+  const int64_t Krt = K, Crt = C;  // run-time values; the evaluation loop may fix them at compile time
   const int64_t kChunk = 64, nchunks = (N + kChunk - 1) / kChunk;
   const float inf = std::numeric_limits<float>::infinity();
   for (int64_t v = 0; v < V; ++v) {
@@ -428,7 +430,12 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     const int32_t* Iv = I + v * HW * K;
     // A task is a run of consecutive (spatially sorted) points: their windows overlap in the
     // record buffer. Each point is one task's, so it owns its gsum row (no race, view order kept).
-    dynamic_for(nchunks, 1, [&](int64_t task) {
+    // The evaluation loop, compiled for the common (K, C) = (5, 3) and (5, 1) with constant
+    // trip counts (the cache scans and channel dots unroll) and for any (K, C) at run time.
+    auto points_task = [&](auto KT, auto CT, int64_t task) {
+      constexpr int64_t KC = decltype(KT)::value, CC = decltype(CT)::value;
+      const int64_t K = KC > 0 ? KC : Krt, C = CC > 0 ? CC : Crt;
+      const int64_t RS = 6 + C + 3 * K, oD = 6 + C, oR = oD + K, oG = oR + K;
       const int64_t k_begin = task * kChunk, k_end = std::min(N, k_begin + kChunk);
       for (int64_t k = k_begin; k < k_end; ++k) {
         const float* s = P + (v * N + k) * kFields;
@@ -550,7 +557,15 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
         double* gk = gsum.data() + k * 3;  // world gradient = R^T acc
         for (int a = 0; a < 3; ++a) gk[a] += Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
       }
-    });
+    };
+    using K5 = std::integral_constant<int64_t, 5>;
+    using Any = std::integral_constant<int64_t, 0>;
+    if (Krt == 5 && Crt == 3)
+      dynamic_for(nchunks, 1, [&](int64_t t) { points_task(K5{}, std::integral_constant<int64_t, 3>{}, t); });
+    else if (Krt == 5 && Crt == 1)
+      dynamic_for(nchunks, 1, [&](int64_t t) { points_task(K5{}, std::integral_constant<int64_t, 1>{}, t); });
+    else
+      dynamic_for(nchunks, 1, [&](int64_t t) { points_task(Any{}, Any{}, t); });
   }
   for (int64_t e = 0; e < N * 3; ++e) G[e] = (float)gsum[e];
   return out;
