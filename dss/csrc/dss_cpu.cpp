@@ -224,7 +224,12 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   const float* A = do_blend ? attrs.data_ptr<float>() : nullptr;
   const float* BG = do_blend ? background.data_ptr<float>() : nullptr;
 
-  dynamic_for(V * T, 1, [&](int64_t item) {
+  // The tile loop, compiled for the common (K, C) = (5, 3) and (5, 1) with constant trip counts
+  // and for any (K, C) at run time (C = 0: no blending).
+  const int64_t Krt = K, Crt = C;
+  auto tile_task = [&](auto KT, auto CT, int64_t item) {
+    constexpr int64_t KC = decltype(KT)::value, CC = decltype(CT)::value;
+    const int64_t K = KC > 0 ? KC : Krt, C = CC > 0 ? CC : Crt;
     const int64_t v = item / T, t = item % T;
     const int ty = (int)(t / TX), tx = (int)(t % TX);
     const int ti0 = ty * kTile, tj0 = tx * kTile;
@@ -319,7 +324,15 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
         }
       }
     }
-  });
+  };
+  using K5 = std::integral_constant<int64_t, 5>;
+  using Any = std::integral_constant<int64_t, 0>;
+  if (Krt == 5 && Crt == 3)
+    dynamic_for(V * T, 1, [&](int64_t t) { tile_task(K5{}, std::integral_constant<int64_t, 3>{}, t); });
+  else if (Krt == 5 && Crt == 1)
+    dynamic_for(V * T, 1, [&](int64_t t) { tile_task(K5{}, std::integral_constant<int64_t, 1>{}, t); });
+  else
+    dynamic_for(V * T, 1, [&](int64_t t) { tile_task(Any{}, Any{}, t); });
   return {idx, depth, rho, images, mask};
 }
 
