@@ -57,9 +57,12 @@ class SunLights:
     ambient: float = 0.3
 
     def __call__(self, points, normals, cameras: Cameras, albedo=None) -> torch.Tensor:
-        n_cam = torch.einsum("vij,nj->vni", cameras.R, normals)  # (V,N,3)
         d = self.directions.to(normals)
-        lam = torch.einsum("vnj,lj->vnl", n_cam, d).clamp_min(0)  # (V,N,L) diffuse terms
+        # (R_v n) . d_l = n . (R_v^T d_l): one (N, 3) x (3, V L) product with the lights turned
+        # into world space, instead of rotating every normal into every camera
+        d_world = torch.einsum("vij,li->vlj", cameras.R.to(normals), d)  # (V,L,3)
+        V, L = d_world.shape[:2]
+        lam = (normals @ d_world.reshape(V * L, 3).T).view(-1, V, L).permute(1, 0, 2).clamp_min(0)  # (V,N,L)
         rgb = lam @ self.colors.to(normals) + self.ambient
         if albedo is not None:
             rgb = rgb * albedo[None]

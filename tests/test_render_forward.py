@@ -226,3 +226,20 @@ def test_reused_output_blocks_are_fully_rewritten(cpp_backend):
     assert torch.allclose(fa.rho, fb.rho, rtol=1e-5, atol=1e-7)
     del fb, mb
     assert _ext.empty_cache() > 0 and _ext.empty_cache() == 0  # parked again, then released
+
+
+def test_sun_shading_is_the_camera_space_diffuse_term():
+    """SunLights turns the lights into world space (one product for all views); the result is
+    the definition: ambient + max(0, (R_v n) . d_l) per light, coloured, for every view."""
+    from dss.shading import SunLights
+
+    pts, nrm, cams, _, _ = random_scene(4, n=200, views=4)
+    sun = SunLights(colors=torch.tensor([[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0.1, 0.0, 0.7]]))
+    n = nrm.clone().requires_grad_()
+    got = sun(pts, n, cams)
+    n_cam = torch.einsum("vij,nj->vni", cams.R, nrm)
+    want = (n_cam @ sun.directions.T).clamp_min(0) @ sun.colors + sun.ambient
+    assert got.shape == (4, 200, 3)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    got.sum().backward()
+    assert n.grad.abs().max() > 0
