@@ -62,8 +62,13 @@ class SunLights:
         # into world space, instead of rotating every normal into every camera
         d_world = torch.einsum("vij,li->vlj", cameras.R.to(normals), d)  # (V,L,3)
         V, L = d_world.shape[:2]
-        lam = (normals @ d_world.reshape(V * L, 3).T).view(-1, V, L).permute(1, 0, 2).clamp_min(0)  # (V,N,L)
-        rgb = lam @ self.colors.to(normals) + self.ambient
+        lam = (normals @ d_world.reshape(V * L, 3).T).clamp_min(0).view(-1, V, L)  # (N, V, L) diffuse terms
+        colors = self.colors.to(normals)
+        if L == 3 and torch.equal(colors, torch.eye(3, dtype=colors.dtype, device=colors.device)):
+            rgb = lam + self.ambient  # red, green, blue lights (the default): no mixing
+        else:  # a K=L matmul is slow in BLAS for such thin matrices; broadcast instead
+            rgb = (lam[..., :, None] * colors).sum(-2) + self.ambient
+        rgb = rgb.permute(1, 0, 2)  # (V, N, 3)
         if albedo is not None:
             rgb = rgb * albedo[None]
         return rgb
