@@ -135,3 +135,19 @@ def test_first_views_match_dss_bench_cameras():
     bench = cameras_for(pts, 4, 64, seed=3)
     for a, b in ((ours.R, bench.R), (ours.t, bench.t), (ours.focal, bench.focal), (ours.principal, bench.principal)):
         torch.testing.assert_close(a, b)
+
+
+@pytest.mark.slow
+def test_ab_kernels_times_two_builds_on_captured_inputs(tmp_path, cpp_backend):
+    """experiments.ab_kernels builds HEAD's and the working tree's kernel source side by side
+    and times one kernel on the inputs captured from a real step (two builds: ~1.5 min)."""
+    from experiments import ab_kernels
+
+    out = tmp_path / "ab.json"
+    r = ab_kernels.run(["--kernel", "blend_backward", "--base", "HEAD", "--points", "1500", "--views", "2",
+                        "--image-size", "32", "--reps", "3", "--skip", "1", "--out", str(out)])
+    assert set(r["median_ms"]) == {"base", "work"} and all(v > 0 for v in r["median_ms"].values())
+    assert len(r["runs_ms"]["base"]) == 3 and r["speedup"] > 0
+    assert json.loads(out.read_text())["kernel"] == "blend_backward"
+    with pytest.raises(SystemExit, match="git show"):
+        ab_kernels.git_source("no-such-revision")

@@ -1,0 +1,150 @@
+"""Interleaved A/B timing of the C++ kernels of two source revisions on the same inputs.
+
+    python -m experiments.ab_kernels --kernel visibility_backward --base 6647acd [--threads 1]
+
+Times between sessions (or even between two runs minutes apart) differ by more than most kernel
+changes gain, so kernel changes are judged here: the inputs of one real optimisation step (the
+20K-point kangaroo cloud, 12 views at 256x256, visibility window 4, as ``dss-runtime-table``) are
+captured once from the working tree's ``render()``, then the ``base`` revision's
+``dss/csrc/dss_cpu.cpp`` (read with ``git show``) and the working tree's are both built in this
+process and called in turn, ``--reps`` times each; the medians (after ``--skip`` warm-up calls)
+and their ratio are printed and written to ``--out`` (JSON). The kernel must have the same
+signature in both revisions (``rasterize_forward``, ``visibility_backward`` and
+``blend_backward`` have since session 19). The numbers in docs/performance.md's "What changed
+this session" come from this comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SOURCE = "dss/csrc/dss_cpu.cpp"
+KERNELS = ("rasterize_forward", "visibility_backward", "blend_backward")
+
+
+def capture_inputs(kind: str, n_points: int, views: int, size: int) -> dict:
+    """The arguments of every C++ kernel call of one optimisation step (the last call of each)."""
+    from dss import _ext
+    from dss.losses import smape_loss
+    from dss.render import RenderSettings, render
+    from dss.splats import auto_sigma
+    from dss.views import SphereViewSampler
+    from experiments.bench_render import benchmark_cloud
+    from experiments.runtime_table import FOV_DEG, JITTER, POSITION_WINDOW, TARGET_NOISE
+
+    mod = _ext.load_cpu()
+    if mod is None:
+        raise SystemExit(f"the C++ kernel did not build: {_ext.build_error()}")
+    captured: dict = {}
+
+    class Recorder:
+        def __getattr__(self, name):
+            fn = getattr(mod, name)
+
+            def call(*args):
+                captured[name] = args
+                return fn(*args)
+
+            return call
+
+    pts, nrm, _ = benchmark_cloud(n_points)
+    settings = RenderSettings(window=POSITION_WINDOW)
+    cams = SphereViewSampler((0.0, 0.0, 0.0), float(pts.norm(dim=1).max()), views=views, image_size=size,
+                             fov_deg=FOV_DEG, jitter=JITTER, seed=0).sample()
+    sigma = auto_sigma(pts)
+    target_pts = pts + TARGET_NOISE * torch.randn(pts.shape, generator=torch.Generator().manual_seed(1))
+    original = _ext.load_cpu
+    _ext.load_cpu = lambda: Recorder()
+    try:
+        with torch.no_grad():
+            target = render(target_pts, nrm, cams, settings, sigma=sigma, backend="cpp").images
+        p = pts.clone().requires_grad_(kind == "position")
+        n = nrm.clone().requires_grad_(kind == "normal")
+        smape_loss(render(p, n, cams, settings, sigma=sigma, backend="cpp").images, target,
+                   channel_reduction="mean").backward()
+    finally:
+        _ext.load_cpu = original
+    return captured
+
+
+def build(name: str, source_text: str, workdir: Path):
+    """Build one revision's kernel source as module ``name`` with the package's flags."""
+    from torch.utils.cpp_extension import load
+
+    from dss._ext import _BASE_CFLAGS, _OPENMP_FLAGS
+
+    src = workdir / f"{name}.cpp"
+    src.write_text(source_text)
+    build_dir = workdir / f"build_{name}"
+    build_dir.mkdir(exist_ok=True)
+    return load(name=name, sources=[str(src)], extra_cflags=_BASE_CFLAGS + _OPENMP_FLAGS,
+                extra_ldflags=_OPENMP_FLAGS, build_directory=str(build_dir), verbose=False)
+
+
+def git_source(rev: str) -> str:
+    try:
+        return subprocess.run(["git", "show", f"{rev}:{SOURCE}"], cwd=REPO, check=True, capture_output=True,
+                              text=True).stdout
+    except subprocess.CalledProcessError as e:
+        raise SystemExit(f"git show {rev}:{SOURCE} failed: {e.stderr.strip()}") from e
+
+
+def run(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--kernel", choices=KERNELS, default="visibility_backward")
+    ap.add_argument("--base", required=True, help="git revision whose dss_cpu.cpp is the baseline")
+    ap.add_argument("--kind", choices=("position", "normal"), default="position")
+    ap.add_argument("--points", type=int, default=20000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--image-size", type=int, default=256)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--reps", type=int, default=12)
+    ap.add_argument("--skip", type=int, default=2, help="warm-up calls of each build left out of the medians")
+    ap.add_argument("--out", default=None, help="JSON file for the result")
+    args = ap.parse_args(argv)
+    if args.reps <= args.skip:
+        raise SystemExit("--reps must exceed --skip")
+    torch.set_num_threads(args.threads)
+    inputs = capture_inputs(args.kind, args.points, args.views, args.image_size)
+    if args.kernel not in inputs:
+        raise SystemExit(f"a {args.kind} step does not call {args.kernel}")
+    sources = {"base": git_source(args.base), "work": (REPO / SOURCE).read_text()}
+    times: dict = {k: [] for k in sources}
+    with tempfile.TemporaryDirectory() as tmp:
+        mods = {k: build(f"dss_ab_{k}", text, Path(tmp)) for k, text in sources.items()}
+        for _ in range(args.reps):
+            for k, mod in mods.items():
+                t0 = time.perf_counter()
+                out = getattr(mod, args.kernel)(*inputs[args.kernel])
+                times[k].append(1e3 * (time.perf_counter() - t0))
+                del out
+    med = {k: statistics.median(v[args.skip:]) for k, v in times.items()}
+    result = {"kernel": args.kernel, "base": args.base, "kind": args.kind, "points": args.points,
+              "views": args.views, "image_size": args.image_size, "threads": args.threads,
+              "median_ms": med, "speedup": med["base"] / med["work"], "runs_ms": times,
+              "command": "python -m experiments.ab_kernels " + " ".join(sys.argv[1:] if argv is None else argv)}
+    print(f"{args.kernel}, {args.points} points, {args.threads} thread(s): base {args.base} {med['base']:.2f} ms, "
+          f"working tree {med['work']:.2f} ms, speed-up {result['speedup']:.2f}x")
+    if args.out:
+        from dss.io_utils import atomic_write_json
+
+        atomic_write_json(args.out, result)
+    return result
+
+
+def main(argv=None) -> int:
+    run(argv)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
