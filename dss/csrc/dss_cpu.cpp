@@ -58,14 +58,8 @@ inline float quad(const float* s, float dx, float dy) {
 // space: 1/z = pl[0] px + pl[1] py + pl[2] (computed in dss/render.py; (0, 0, 1/z) reproduces
 // the centre depth). Grazing planes are clamped to a slope of kMaxSlope: |zp - z| <= kMaxSlope *
 // (pixel distance) * z / f.
+// (visibility_backward evaluates it inline, with the square root only where the clamp applies.)
 constexpr float kMaxSlope = 3.f;
-inline float plane_depth(const float* pl, float px, float py, float z, float dist_px, float f) {
-  const float iz = pl[0] * px + pl[1] * py + pl[2];
-  float zp = iz > 0.f ? 1.f / iz : z;
-  const float dmax = kMaxSlope * dist_px * z / f;
-  zp = std::min(std::max(zp, z - dmax), z + dmax);
-  return zp;
-}
 
 // Large outputs (the top-K cache is 47 MB at 12 views of 256x256) come from a block cache: a
 // fresh allocation of that size is a fresh mmap, whose page faults and kernel zeroing cost more
@@ -501,7 +495,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
                 }
               }
             } else {
-              // plane_depth() without its square root unless the slope clamp applies
+              // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
               const float iz = pl[0] * px + pl[1] * py + pl[2];
               zp = iz > 0.f ? 1.f / iz : z;
               const float d2 = (px - u) * (px - u) + (py - vv) * (py - vv);

@@ -75,7 +75,7 @@ __device__ __forceinline__ float quad(float a, float b2, float c, float dx, floa
   return (t1 + t2) + t3;
 }
 
-// dss_cpu.cpp plane_depth(): the depth of point k's tangent plane at pixel (px, py), clamped.
+// The depth of point k's tangent plane at pixel (px, py), clamped (the rule at kMaxSlope in dss_cpu.cpp).
 constexpr float kMaxSlope = 3.f;
 __device__ __forceinline__ float plane_depth(const float* pl, float px, float py, float z, float dist_px, float f) {
   const float iz = pl[0] * px + pl[1] * py + pl[2];
