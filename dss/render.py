@@ -317,6 +317,9 @@ def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras)
         raise ValueError("points/normals contain NaN or inf; drop those rows first (dss.pointcloud.finite_rows)")
     if not isinstance(cameras, Cameras):
         raise TypeError("cameras must be a dss.cameras.Cameras")
+    if points.dtype != cameras.R.dtype or normals.dtype != points.dtype:
+        raise ValueError(f"points ({points.dtype}), normals ({normals.dtype}) and cameras ({cameras.R.dtype}) must "
+                         "share one floating dtype: convert with points.float() or cameras.to(torch.float64)")
 
 
 def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settings: RenderSettings | None = None,

@@ -80,7 +80,7 @@ def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: 
     C = attrs.shape[-1]
     merge = frags.merge_threshold
     dev = packed.device
-    out = torch.zeros(N, 3, dtype=torch.float32, device=dev)
+    out = torch.zeros(N, 3, dtype=packed.dtype, device=dev)  # the splats' dtype (float64 renders too)
     off = torch.arange(-window, window + 1, stride, device=dev)
     oy, ox = torch.meshgrid(off, off, indexing="ij")
     oy, ox = oy.flatten(), ox.flatten()
@@ -135,7 +135,7 @@ def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: 
         gd = (g * (inew - images[v, ii, jj])).sum(-1)
         px = jj.float() + 0.5
         py = ii.float() + 0.5
-        acc = torch.zeros(len(kk), 3, device=dev)
+        acc = torch.zeros(len(kk), 3, dtype=packed.dtype, device=dev)
         if mode == "dss":
             use = gd < 0
             # (a)/(b): toward the back-projected pixel, at the point's depth or the front depth.
@@ -171,6 +171,6 @@ def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: 
             acc = torch.stack([c * f / zc * gu, c * f / zc * gv, c * (-f * Xk / (zc * zc) * gu - f * Yk / (zc * zc) * gv)], -1)
         else:
             raise ValueError(f"unknown gradient mode {mode!r}")
-        acc_k = torch.zeros(len(ks), 3, device=dev).index_add_(0, kk, acc)
+        acc_k = torch.zeros(len(ks), 3, dtype=acc.dtype, device=dev).index_add_(0, kk, acc)
         out.index_add_(0, ks, acc_k @ cameras.R[v])  # world = R^T acc  <=>  acc @ R
     return out
