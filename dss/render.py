@@ -317,9 +317,9 @@ def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras)
         raise ValueError("points/normals contain NaN or inf; drop those rows first (dss.pointcloud.finite_rows)")
     if not isinstance(cameras, Cameras):
         raise TypeError("cameras must be a dss.cameras.Cameras")
-    if points.dtype != cameras.R.dtype or normals.dtype != points.dtype:
-        raise ValueError(f"points ({points.dtype}), normals ({normals.dtype}) and cameras ({cameras.R.dtype}) must "
-                         "share one floating dtype: convert with points.float() or cameras.to(torch.float64)")
+    if not (points.is_floating_point() and normals.is_floating_point() and cameras.R.is_floating_point()):
+        raise ValueError(f"points ({points.dtype}), normals ({normals.dtype}) and cameras ({cameras.R.dtype}) "
+                         "must be floating-point tensors")
 
 
 def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settings: RenderSettings | None = None,
@@ -343,6 +343,9 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
     """
     settings = settings or RenderSettings()
     _check_inputs(points, normals, cameras)
+    # one dtype throughout, the cameras' (e.g. float64 points from numpy with float32 cameras);
+    # autograd hands the gradients back in the caller's dtype
+    points, normals = points.to(cameras.R.dtype), normals.to(cameras.R.dtype)
     backend = resolve_backend(backend, points.device)
     if sigma is None:
         sigma = auto_sigma(points.detach(), settings.sigma_k, settings.sigma_scale) if settings.sigma == "auto" else float(settings.sigma)

@@ -379,3 +379,9 @@ def test_float64_inputs_render_and_differentiate_on_both_backends(cpp_backend):
         grads[backend] = p.grad
     ref = grads["reference"]
     assert ref.abs().max() > 0 and (grads[cpp_backend] - ref).norm() <= 1e-3 * ref.norm()
+    # float64 points with the float32 cameras: rendered in float32, gradients back in float64
+    p = pts.double().requires_grad_()
+    out = render(p, nrm, cams.to(torch.float32), RenderSettings(merge_threshold=0.05), sigma=sigma, backend=cpp_backend)
+    (out.images * torch.linspace(0, 1, 3)).sum().backward()
+    assert out.images.dtype == torch.float32 and p.grad.dtype == torch.float64
+    assert (p.grad - ref).norm() <= 1e-3 * ref.norm()

@@ -180,8 +180,8 @@ def test_bad_render_input_messages():
         render(torch.zeros(3, 3), torch.zeros(3, 3), cams, backend="gpu-magic")
     with pytest.raises(ValueError, match="gradient must be"):
         RenderSettings(gradient="soft")
-    with pytest.raises(ValueError, match="share one floating dtype"):
-        render(torch.zeros(3, 3, dtype=torch.float64), torch.ones(3, 3, dtype=torch.float64), cams)
+    with pytest.raises(ValueError, match="floating-point"):
+        render(torch.zeros(3, 3, dtype=torch.int64), torch.ones(3, 3), cams)
 
 
 def test_fused_cpp_projection_matches_torch(cpp_backend):
