@@ -481,10 +481,10 @@ def floor_markdown(result: dict) -> list[str]:
              "not measured.", "",
          "| application | points | backend | kind | CPU floor fwd / step (ms) | H100 floor step, published spec (ms) | fwd (ms) | fwd+bwd (ms) | fwd / floor | fwd+bwd / step floor |",
          "|---|---|---|---|---|---|---|---|---|---|"]
+    if not all(f.get("step_floor_counts_backward", False) for f in fl["workloads"]):
+        L.insert(2, "(These counts predate the backward count: the step floor is the forward floor.)")
     apps = {r["key"]: r["application"] for r in result["workloads"]}
     for f in fl["workloads"]:
-        if not f.get("step_floor_counts_backward", False):
-            L.insert(2, "(These counts predate the backward count: the step floor is the forward floor.)")
         for b, per in f["measured"].items():
             for k in KINDS:
                 m = per[k]

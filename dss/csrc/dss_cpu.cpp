@@ -672,6 +672,44 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
 }
 
 // ---------------------------------------------------------------------------------------------
+// The camera-frame geometry of one splat (dss/splats.py project_splats, same formulas), shared by
+// the projection's forward and backward: camera-space point and normal, the unit normal, the rows
+// m1, m2 of the projection's derivative, A = M P M^T, |det J| and Sigma = s^2 A + fv I.
+// Zs = Z in front of the near plane, else 1 (culled splats stay finite).
+constexpr float kInf = std::numeric_limits<float>::infinity();
+struct SplatGeometry {
+  float X, Y, Z, Zs, nc[3], inv, nh[3], m1[3], m2[3], m1n, m2n, A11, A12, A22, w, detJ, s2, S11, S12, S22, detS;
+};
+
+inline SplatGeometry splat_geometry(const float* p, const float* n, const float* Rv, const float* tv, float f,
+                                    float sigma, float fv, float zn) {
+  SplatGeometry g;
+  float pc[3];
+  for (int a = 0; a < 3; ++a) {
+    pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + tv[a];
+    g.nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
+  }
+  g.X = pc[0], g.Y = pc[1], g.Z = pc[2];
+  const float Zs = g.Z > zn ? g.Z : 1.f;
+  g.Zs = Zs;
+  const float nl2 = g.nc[0] * g.nc[0] + g.nc[1] * g.nc[1] + g.nc[2] * g.nc[2];
+  g.inv = 1.f / std::sqrt(nl2 + 1e-20f);
+  for (int a = 0; a < 3; ++a) g.nh[a] = g.nc[a] * g.inv;
+  g.m1[0] = f / Zs, g.m1[1] = 0.f, g.m1[2] = -f * g.X / (Zs * Zs);
+  g.m2[0] = 0.f, g.m2[1] = f / Zs, g.m2[2] = -f * g.Y / (Zs * Zs);
+  g.m1n = g.m1[0] * g.nh[0] + g.m1[2] * g.nh[2];
+  g.m2n = g.m2[1] * g.nh[1] + g.m2[2] * g.nh[2];
+  g.A11 = g.m1[0] * g.m1[0] + g.m1[2] * g.m1[2] - g.m1n * g.m1n;
+  g.A12 = g.m1[2] * g.m2[2] - g.m1n * g.m2n;
+  g.A22 = g.m2[1] * g.m2[1] + g.m2[2] * g.m2[2] - g.m2n * g.m2n;
+  g.w = g.nh[0] * g.X + g.nh[1] * g.Y + g.nh[2] * Zs;
+  g.detJ = f * f * std::fabs(g.w) / (Zs * Zs * Zs);
+  g.s2 = sigma * sigma;
+  g.S11 = g.s2 * g.A11 + fv, g.S12 = g.s2 * g.A12, g.S22 = g.s2 * g.A22 + fv;
+  g.detS = g.s2 * g.s2 * (g.detJ * g.detJ) + g.s2 * fv * (g.A11 + g.A22) + fv * fv;
+  return g;
+}
+
 // Forward-only fused version of dss/splats.py project_splats (same formulas; used when no
 // gradient is needed, where the torch version's many (V, N) temporaries dominate at 100K points).
 torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals, torch::Tensor R, torch::Tensor t,
@@ -701,37 +739,16 @@ torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals
     const float* Rv = Rr + v * 9;
     const float f = Ff[v], cx = Cc[v * 2], cy = Cc[v * 2 + 1];
     for (int64_t k = k0; k < k1; ++k) {
-      const float* p = Pp + k * 3;
-      const float* n = Nn + k * 3;
-      float pc[3], nc[3];
-      for (int a = 0; a < 3; ++a) {
-        pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + Tt[v * 3 + a];
-        nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
-      }
-      const float X = pc[0], Y = pc[1], Z = pc[2];
-      const float Zs = Z > zn ? Z : 1.f;
-      const float nl2 = nc[0] * nc[0] + nc[1] * nc[1] + nc[2] * nc[2];
-      const float inv = 1.f / std::sqrt(nl2 + 1e-20f);
-      const float nh[3] = {nc[0] * inv, nc[1] * inv, nc[2] * inv};
-      const float m1[3] = {f / Zs, 0.f, -f * X / (Zs * Zs)};
-      const float m2[3] = {0.f, f / Zs, -f * Y / (Zs * Zs)};
-      const float m1n = m1[0] * nh[0] + m1[2] * nh[2];
-      const float m2n = m2[1] * nh[1] + m2[2] * nh[2];
-      const float A11 = m1[0] * m1[0] + m1[2] * m1[2] - m1n * m1n;
-      const float A12 = m1[2] * m2[2] - m1n * m2n;
-      const float A22 = m2[1] * m2[1] + m2[2] * m2[2] - m2n * m2n;
-      const float detJ = f * f * std::fabs(nh[0] * X + nh[1] * Y + nh[2] * Zs) / (Zs * Zs * Zs);
-      const float detA = detJ * detJ;
-      const float s2 = Sg[k] * Sg[k];
-      const float S11 = s2 * A11 + fv, S12 = s2 * A12, S22 = s2 * A22 + fv;
-      const float detS = s2 * s2 * detA + s2 * fv * (A11 + A22) + fv * fv;
+      const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, Tt + v * 3, f, Sg[k], fv, zn);
+      const float X = g.X, Y = g.Y, Z = g.Z, Zs = g.Zs, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+      const float* nc = g.nc;
       float* o = O + (v * N + k) * kFields;
       o[0] = f * X / Zs + cx;
       o[1] = f * Y / Zs + cy;
       o[2] = S22 / detS;
       o[3] = -2.f * S12 / detS;
       o[4] = S11 / detS;
-      o[5] = detJ / (2.f * 3.14159265358979f * std::sqrt(detS));
+      o[5] = g.detJ / (2.f * 3.14159265358979f * std::sqrt(detS));
       o[6] = Z;
       o[7] = std::sqrt(C2 * S11);
       o[8] = std::sqrt(C2 * S22);
@@ -788,30 +805,11 @@ std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::
         for (int a = 0; a < 6; ++a) out[a] = 0.f;
         continue;
       }
-      const float* p = Pp + k * 3;
-      const float* n = Nn + k * 3;
-      float pc[3], nc[3];
-      for (int a = 0; a < 3; ++a) {
-        pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + Tt[v * 3 + a];
-        nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
-      }
-      const float X = pc[0], Y = pc[1], Z = pc[2];  // valid: Z > znear, so Zs = Z
-      const float nl2 = nc[0] * nc[0] + nc[1] * nc[1] + nc[2] * nc[2];
-      const float inv = 1.f / std::sqrt(nl2 + 1e-20f);
-      const float nh[3] = {nc[0] * inv, nc[1] * inv, nc[2] * inv};
-      const float iZ = 1.f / Z;
-      const float m1[3] = {f * iZ, 0.f, -f * X * iZ * iZ};
-      const float m2[3] = {0.f, f * iZ, -f * Y * iZ * iZ};
-      const float m1n = m1[0] * nh[0] + m1[2] * nh[2];
-      const float m2n = m2[1] * nh[1] + m2[2] * nh[2];
-      const float A11 = m1[0] * m1[0] + m1[2] * m1[2] - m1n * m1n;
-      const float A12 = m1[2] * m2[2] - m1n * m2n;
-      const float A22 = m2[1] * m2[1] + m2[2] * m2[2] - m2n * m2n;
-      const float w = nh[0] * X + nh[1] * Y + nh[2] * Z;
-      const float detJ = f * f * std::fabs(w) * iZ * iZ * iZ;
-      const float s2 = Sg[k] * Sg[k];
-      const float S11 = s2 * A11 + fv, S12 = s2 * A12, S22 = s2 * A22 + fv;
-      const float detS = s2 * s2 * detJ * detJ + s2 * fv * (A11 + A22) + fv * fv;
+      // valid splats only (Z > znear): no near-plane substitute for Z
+      const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, Tt + v * 3, f, Sg[k], fv, -kInf);
+      const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
+      const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+      const float *nc = g.nc, *nh = g.nh, *m1 = g.m1, *m2 = g.m2;
       const float iS = 1.f / detS;
       const float sqS = std::sqrt(detS);
       // outputs: u v a b2 c norm depth rx ry
