@@ -58,7 +58,7 @@ inline float quad(const float* s, float dx, float dy) {
 // space: 1/z = pl[0] px + pl[1] py + pl[2] (computed in dss/render.py; (0, 0, 1/z) reproduces
 // the centre depth). Grazing planes are clamped to a slope of kMaxSlope: |zp - z| <= kMaxSlope *
 // (pixel distance) * z / f.
-// (visibility_backward evaluates it inline, with the square root only where the clamp applies.)
+// (vis_state evaluates it inline, with the square root only where the clamp applies.)
 constexpr float kMaxSlope = 3.f;
 
 // Large outputs (the top-K cache is 47 MB at 12 views of 256x256) come from a block cache: a
@@ -333,6 +333,449 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
 // ---------------------------------------------------------------------------------------------
 // Visibility gradient (paper Eqs. gradcase, filteredG, cases (a), (b), (c)); see
 // dss/visibility/reference.py for the rules written out in torch.
+namespace {
+
+// Everything a (point, pixel) evaluation reads about the pixel, for one view, as planes of H*W
+// values (structure of arrays: a window row is a run of consecutive values in every plane, so the
+// vector path loads 8 pixels with one instruction per plane). With g = dL/dI at the pixel only the
+// projections g . w of the attributes matter (gd = g . I_new - g . I = (sum rho g.w) / (sum rho)
+// - g . I), so an evaluation is channel-free. Float planes: nz (1 if g != 0; a pixel with nz = 0
+// is never read further and its other planes are stale), d0 (front depth, inf if empty), den =
+// sum rho and gn = sum rho g.w over the visible set, gi = g . I, gb = g . background, g (C
+// planes), then per cache entry e its depth, rho and g.w (K planes each); int planes: the cache
+// indices (K planes).
+template <bool kSoA, int64_t KC = 0, int64_t CC = 0>
+struct VisRecord {
+  int64_t C_ = 0, K_ = 0;  // run-time values; KC, CC > 0 fix them at compile time (constant offsets)
+  int64_t C() const { return CC > 0 ? CC : C_; }
+  int64_t K() const { return KC > 0 ? KC : K_; }
+  int64_t S = 0;  // planes: the plane stride (values); records: the record size (floats)
+  float* f = nullptr;
+  int32_t* ix = nullptr;  // planes: K index planes (stride S); records: the cache's idx (H*W, K)
+  // field numbers
+  static constexpr int64_t kNZ = 0, kD0 = 1, kDen = 2, kGn = 3, kGi = 4, kGb = 5;
+  int64_t fG(int64_t ch) const { return 6 + ch; }
+  int64_t fDep(int64_t e) const { return 6 + C() + e; }
+  int64_t fRho(int64_t e) const { return 6 + C() + K() + e; }
+  int64_t fGw(int64_t e) const { return 6 + C() + 2 * K() + e; }
+  float& at(int64_t field, int64_t p) const { return kSoA ? f[field * S + p] : f[p * S + field]; }
+  float& nz(int64_t p) const { return at(kNZ, p); }
+  float& d0(int64_t p) const { return at(kD0, p); }
+  float& den(int64_t p) const { return at(kDen, p); }
+  float& gn(int64_t p) const { return at(kGn, p); }
+  float& gi(int64_t p) const { return at(kGi, p); }
+  float& gb(int64_t p) const { return at(kGb, p); }
+  float& g(int64_t ch, int64_t p) const { return at(fG(ch), p); }
+  float& dep(int64_t e, int64_t p) const { return at(fDep(e), p); }
+  float& rho(int64_t e, int64_t p) const { return at(fRho(e), p); }
+  float& gw(int64_t e, int64_t p) const { return at(fGw(e), p); }
+  int32_t& idx(int64_t e, int64_t p) const { return kSoA ? ix[e * S + p] : ix[p * K() + e]; }
+  // The same record with (K, C) fixed at compile time.
+  template <int64_t K2, int64_t C2>
+  VisRecord<kSoA, K2, C2> fixed() const {
+    VisRecord<kSoA, K2, C2> r;
+    r.C_ = C_, r.K_ = K_, r.S = S, r.f = f, r.ix = ix;
+    return r;
+  }
+  // planes only: the start of a field's / an index plane
+  const float* plane(int64_t field) const { return f + field * S; }
+  const int32_t* idx_plane(int64_t e) const { return ix + e * S; }
+  static int64_t fields(int64_t C, int64_t K) { return 6 + C + 3 * K; }
+  // H*W rounded up to 16 values, plus 5 cache lines: planes a power of two apart (256 KB at
+  // 256x256) would all map to the same few sets of the L1 and L2 caches and evict each other.
+  static int64_t plane_stride(int64_t HW) { return (HW + 15) / 16 * 16 + 80; }
+};
+
+// What an evaluation needs about the point (one view).
+struct VisPoint {
+  const float* s;   // packed splat (kFields)
+  const float* wk;  // the point's attributes (C)
+  const float* pl;  // tangent plane: 1/z = pl[0] px + pl[1] py + pl[2]
+  int32_t k;
+  float u, v, z, nk;
+  float z_f;    // camera units per pixel at the point's depth
+  float X, Y;   // camera-frame x, y of the point
+  float slope;  // plane-depth clamp per pixel of distance (kMaxSlope * z_f)
+};
+
+// The view's and the rule's constants.
+struct VisConsts {
+  float f, cx, cy, inv_f, cutoff, merge, eps;
+};
+
+// The visibility state after k's change at one pixel: the case, the loss change gd = g . I_new -
+// g . I, k's (clamped) tangent-plane depth zp (cases (a)/(b) only) and the front depth d0.
+struct VisState {
+  int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
+  float gd, zp, d0;
+};
+
+template <int64_t KC, int64_t CC, class Rec>
+inline VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
+                          int64_t p, float px, float py) {
+  const int64_t K = KC > 0 ? KC : Krt, C = CC > 0 ? CC : Crt;
+  const float d0 = R.d0(p), merge = Q.merge;
+  int ek = -1;  // position of k in the cache
+  for (int e = 0; e < K && R.idx(e, p) >= 0; ++e)
+    if (R.idx(e, p) == P.k) { ek = e; break; }
+  const bool k_visible = ek >= 0 && R.dep(ek, p) <= d0 + merge;
+  float zp = 0.f;  // only needed when k is not visible
+  float den, gn;   // sum rho and sum rho g.w of the visible set after the change
+  int kase;
+  if (k_visible) {
+    kase = 2;
+    if (ek > 0) {  // the front stays: the visible set loses k only
+      const float prk = R.rho(ek, p);
+      den = R.den(p) - prk;
+      gn = R.gn(p) - prk * R.gw(ek, p);
+      if (!(den > 0.f)) den = 0.f;
+    } else {  // k was the front: the next entry is the new front, may reveal others
+      den = 0.f;
+      gn = 0.f;
+      if (K > 1 && R.idx(1, p) >= 0) {
+        const float lim = R.dep(1, p) + merge;
+        for (int e = 1; e < K && R.idx(e, p) >= 0 && R.dep(e, p) <= lim; ++e) {
+          den += R.rho(e, p);
+          gn += R.rho(e, p) * R.gw(e, p);
+        }
+      }
+    }
+  } else {
+    // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
+    const float iz = P.pl[0] * px + P.pl[1] * py + P.pl[2];
+    zp = iz > 0.f ? 1.f / iz : P.z;
+    const float d2 = (px - P.u) * (px - P.u) + (py - P.v) * (py - P.v);
+    const float dz = zp - P.z;
+    if (dz * dz > P.slope * P.slope * d2) {
+      const float dmax = P.slope * std::sqrt(d2);
+      zp = std::min(std::max(zp, P.z - dmax), P.z + dmax);
+    }
+    const bool empty = R.idx(0, p) < 0;
+    kase = (empty || zp <= d0 + merge) ? 0 : 1;
+    float gw = 0.f;
+    for (int64_t ch = 0; ch < C; ++ch) gw += R.g(ch, p) * P.wk[ch];
+    den = P.nk;
+    gn = P.nk * gw;
+    if (kase == 1 || zp >= d0) {  // merges with the current visible set
+      den += R.den(p);
+      gn += R.gn(p);
+    } else if (!empty) {  // k becomes the front: entries beyond zp + T drop out
+      const float lim = zp + merge;
+      for (int e = 0; e < K && R.idx(e, p) >= 0 && R.dep(e, p) <= lim; ++e) {
+        den += R.rho(e, p);
+        gn += R.rho(e, p) * R.gw(e, p);
+      }
+    }
+  }
+  const float gd = (den > 0.f ? gn / den : R.gb(p)) - R.gi(p);
+  return {kase, gd, zp, d0};
+}
+
+// One (point, pixel) evaluation, scalar; adds to acc (double) in the order the window is walked.
+// mode 0 (dss): the linearised step between the two visibility states; mode 1 (rbf): the
+// derivative of a smooth Gaussian visibility h = exp(-q/2).
+template <int64_t KC, int64_t CC, class Rec>
+inline void eval_scalar(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
+                        int64_t mode, int64_t p, float px, float py, double acc[3]) {
+  const VisState st = vis_state<KC, CC>(R, Krt, Crt, P, Q, p, px, py);
+  const float gd = st.gd;
+  const float ddx = px - P.u, ddy = py - P.v;
+  if (mode == 1) {
+    const float q = quad(P.s, ddx, ddy);
+    const float h = std::exp(-0.5f * q);
+    const float sgn = st.kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
+    const float gu = h * (P.s[2] * ddx + 0.5f * P.s[3] * ddy);  // dh/du_k = h Sigma^-1 d
+    const float gv = h * (0.5f * P.s[3] * ddx + P.s[4] * ddy);
+    const float c = sgn * gd, f = Q.f, z = P.z;
+    acc[0] += c * (f / z) * gu;
+    acc[1] += c * (f / z) * gv;
+    acc[2] += c * (-f * P.X / (z * z) * gu - f * P.Y / (z * z) * gv);
+    return;
+  }
+  if (!(gd < 0.f)) return;  // Eq. filteredG
+  if (st.kase == 2) {       // (c): step out of the splat along the ray from its centre, both ways
+    const float sd = std::sqrt(ddx * ddx + ddy * ddy);
+    if (sd < 1e-6f) return;
+    const float inv_sd = 1.f / sd;
+    const float ux = ddx * inv_sd, uy = ddy * inv_sd;
+    const float qu = quad(P.s, ux, uy);
+    const float rr = std::sqrt(2.f * Q.cutoff / std::max(qu, 1e-20f));
+    const float steps[2] = {-(std::max(rr - sd, 0.f)), rr + sd};
+    for (int m = 0; m < 2; ++m) {
+      const float mx = steps[m] * ux * P.z_f, my = steps[m] * uy * P.z_f;
+      const float coef = gd / (mx * mx + my * my + Q.eps);
+      acc[0] += coef * mx;
+      acc[1] += coef * my;
+    }
+  } else {
+    const float zt = st.kase == 1 ? st.d0 : st.zp;  // (b): forward to the front surface
+    const float zt_f = zt * Q.inv_f;
+    const float mx = (px - Q.cx) * zt_f - P.X, my = (py - Q.cy) * zt_f - P.Y, mz = zt - st.zp;
+    const float coef = gd / (mx * mx + my * my + mz * mz + Q.eps);
+    acc[0] += coef * mx;
+    acc[1] += coef * my;
+    acc[2] += coef * mz;
+  }
+}
+
+// The dss rule over a point's whole window, 8 pixels per AVX2 vector: every case is computed in
+// every lane and the lane's own case selected by masks; the same float32 operations in the same
+// order as eval_scalar per lane, and the lanes' contributions added to acc in the scalar walk's
+// order afterwards, so the result is bit for bit the scalar one (tests/test_render_backward.py
+// checks). A stride-1 window is cut into row runs of 8 pixels (one load per record plane) and
+// the columns left over (the 9th of a 9-wide window) are gathered 8 at a time across rows; a
+// sparse (stride > 1) window is gathered whole, 8 pixels at a time.
+#if defined(__x86_64__) && defined(__GNUC__)
+#define DSS_VIS_AVX2 1
+}  // namespace
+#include <immintrin.h>
+namespace {
+
+#define DSS_AVX2 __attribute__((target("avx2")))
+
+// One chunk's contributions: per lane the two (c) steps (a0, a1: x, y) or the (a)/(b) step
+// (b: x, y, z); vbits / nbits: the lanes whose (c) / (a)(b) contribution counts.
+struct alignas(32) VisChunkOut {
+  float a0x[8], a0y[8], a1x[8], a1y[8], b0[8], b1[8], b2[8];
+  int vbits, nbits;
+};
+
+// Where a chunk's 8 pixels are: mode 0: offsets p0 + l, all on the image (plain loads); mode 1:
+// p0 + l, lanes outside oki not read (masked loads); mode 2: off[l] for lanes in oki (gathers).
+struct VisAddr {
+  int mode;
+  int64_t p0;
+  __m256i off, oki;
+};
+
+template <int64_t KC, int64_t CC>
+struct VisLanes {
+  using Rec = VisRecord<true, KC, CC>;
+  const Rec* R;
+  int64_t K, C;
+  __m256i vk;
+  __m256 vu, vv, vz, vnk, vzf, vX, vY, vslope, vslope2, pl0, pl1, pl2, s2, s3, s4;
+  __m256 vmerge, veps, vcx, vcy, vinvf, v2cut;
+  __m256 wk[16];
+
+  DSS_AVX2 void init(const Rec& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q) {
+    R = &rec;
+    K = KC > 0 ? KC : Krt;
+    C = CC > 0 ? CC : Crt;
+    vk = _mm256_set1_epi32(P.k);
+    vu = _mm256_set1_ps(P.u), vv = _mm256_set1_ps(P.v), vz = _mm256_set1_ps(P.z), vnk = _mm256_set1_ps(P.nk);
+    vzf = _mm256_set1_ps(P.z_f), vX = _mm256_set1_ps(P.X), vY = _mm256_set1_ps(P.Y);
+    vslope = _mm256_set1_ps(P.slope), vslope2 = _mm256_set1_ps(P.slope * P.slope);
+    pl0 = _mm256_set1_ps(P.pl[0]), pl1 = _mm256_set1_ps(P.pl[1]), pl2 = _mm256_set1_ps(P.pl[2]);
+    s2 = _mm256_set1_ps(P.s[2]), s3 = _mm256_set1_ps(P.s[3]), s4 = _mm256_set1_ps(P.s[4]);
+    vmerge = _mm256_set1_ps(Q.merge), veps = _mm256_set1_ps(Q.eps), vcx = _mm256_set1_ps(Q.cx);
+    vcy = _mm256_set1_ps(Q.cy), vinvf = _mm256_set1_ps(Q.inv_f), v2cut = _mm256_set1_ps(2.f * Q.cutoff);
+    for (int64_t ch = 0; ch < C; ++ch) wk[ch] = _mm256_set1_ps(P.wk[ch]);
+  }
+
+  static DSS_AVX2 inline __m256 ld(const VisAddr& a, const float* plane) {
+    if (a.mode == 0) return _mm256_loadu_ps(plane + a.p0);
+    if (a.mode == 1) return _mm256_maskload_ps(plane + a.p0, a.oki);
+    return _mm256_mask_i32gather_ps(_mm256_setzero_ps(), plane, a.off, _mm256_castsi256_ps(a.oki), 4);
+  }
+  static DSS_AVX2 inline __m256i ldi(const VisAddr& a, const int32_t* plane) {
+    if (a.mode == 0) return _mm256_loadu_si256((const __m256i*)(plane + a.p0));
+    if (a.mode == 1) return _mm256_maskload_epi32((const int*)(plane + a.p0), a.oki);
+    return _mm256_mask_i32gather_epi32(_mm256_setzero_si256(), (const int*)plane, a.off, a.oki, 4);
+  }
+
+  // The 8 evaluations of one chunk; (px, py) the pixel centres.
+  DSS_AVX2 void eval(const VisAddr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
+    const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.f);
+    const __m256i minus1 = _mm256_set1_epi32(-1);
+    out.vbits = out.nbits = 0;
+    const __m256 m = _mm256_and_ps(_mm256_castsi256_ps(a.oki), _mm256_cmp_ps(ld(a, R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ));
+    if (_mm256_movemask_ps(m) == 0) return;
+    const __m256 d0 = ld(a, R->plane(Rec::kD0)), r1 = ld(a, R->plane(Rec::kDen)), r2 = ld(a, R->plane(Rec::kGn));
+    const __m256 d0m = _mm256_add_ps(d0, vmerge);
+    __m256i ie[8];
+    __m256 de[8], re[8], ge[8];
+    __m256 found = zero, ek0 = zero, pdk = zero, prk = zero, pgk = zero;
+    for (int64_t e = 0; e < K; ++e) {
+      ie[e] = ldi(a, R->idx_plane(e));
+      de[e] = ld(a, R->plane(R->fDep(e)));
+      re[e] = ld(a, R->plane(R->fRho(e)));
+      ge[e] = ld(a, R->plane(R->fGw(e)));
+      const __m256 me = _mm256_castsi256_ps(_mm256_cmpeq_epi32(ie[e], vk));
+      if (e == 0) ek0 = me;
+      found = _mm256_or_ps(found, me);
+      pdk = _mm256_blendv_ps(pdk, de[e], me);
+      prk = _mm256_blendv_ps(prk, re[e], me);
+      pgk = _mm256_blendv_ps(pgk, ge[e], me);
+    }
+    const __m256 kvis = _mm256_and_ps(found, _mm256_cmp_ps(pdk, d0m, _CMP_LE_OQ));
+    const __m256 empty = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), ie[0]));
+    __m256 den = zero, gn = zero, zp = vz, kase1 = zero;
+    const __m256 dxp = _mm256_sub_ps(px, vu), dyp = _mm256_sub_ps(vpy, vv);
+    if (_mm256_movemask_ps(_mm256_and_ps(m, kvis))) {  // (c): without k the visible set loses it,
+      __m256 den_a = _mm256_sub_ps(r1, prk);           // or the next entry becomes the front
+      const __m256 gn_a = _mm256_sub_ps(r2, _mm256_mul_ps(prk, pgk));
+      den_a = _mm256_blendv_ps(zero, den_a, _mm256_cmp_ps(den_a, zero, _CMP_GT_OQ));
+      __m256 den_b = zero, gn_b = zero;
+      if (K > 1) {
+        const __m256 lim = _mm256_add_ps(de[1], vmerge);
+        __m256 alive = _mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[1], minus1));
+        for (int64_t e = 1; e < K; ++e) {
+          alive = _mm256_and_ps(alive, _mm256_and_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[e], minus1)),
+                                                     _mm256_cmp_ps(de[e], lim, _CMP_LE_OQ)));
+          den_b = _mm256_blendv_ps(den_b, _mm256_add_ps(den_b, re[e]), alive);
+          gn_b = _mm256_blendv_ps(gn_b, _mm256_add_ps(gn_b, _mm256_mul_ps(re[e], ge[e])), alive);
+        }
+      }
+      den = _mm256_blendv_ps(den_a, den_b, ek0);
+      gn = _mm256_blendv_ps(gn_a, gn_b, ek0);
+    }
+    if (_mm256_movemask_ps(_mm256_andnot_ps(kvis, m))) {  // (a)/(b): k's clamped plane depth decides
+      const __m256 iz = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(pl0, px), _mm256_mul_ps(pl1, vpy)), pl2);
+      __m256 zq = _mm256_blendv_ps(vz, _mm256_div_ps(one, iz), _mm256_cmp_ps(iz, zero, _CMP_GT_OQ));
+      const __m256 d2 = _mm256_add_ps(_mm256_mul_ps(dxp, dxp), _mm256_mul_ps(dyp, dyp));
+      const __m256 dz = _mm256_sub_ps(zq, vz);
+      const __m256 cl = _mm256_cmp_ps(_mm256_mul_ps(dz, dz), _mm256_mul_ps(vslope2, d2), _CMP_GT_OQ);
+      if (_mm256_movemask_ps(cl)) {
+        const __m256 dmax = _mm256_mul_ps(vslope, _mm256_sqrt_ps(d2));
+        const __m256 lo = _mm256_sub_ps(vz, dmax), hi = _mm256_add_ps(vz, dmax);
+        const __m256 mx = _mm256_blendv_ps(zq, lo, _mm256_cmp_ps(zq, lo, _CMP_LT_OQ));  // std::max(zq, lo)
+        const __m256 mn = _mm256_blendv_ps(mx, hi, _mm256_cmp_ps(hi, mx, _CMP_LT_OQ));  // std::min(mx, hi)
+        zq = _mm256_blendv_ps(zq, mn, cl);
+      }
+      const __m256 k1 = _mm256_andnot_ps(empty, _mm256_cmp_ps(zq, d0m, _CMP_NLE_UQ));
+      __m256 gw = zero;
+      for (int64_t ch = 0; ch < C; ++ch) gw = _mm256_add_ps(gw, _mm256_mul_ps(ld(a, R->plane(R->fG(ch))), wk[ch]));
+      __m256 den_n = vnk, gn_n = _mm256_mul_ps(vnk, gw);
+      const __m256 mall = _mm256_or_ps(k1, _mm256_cmp_ps(zq, d0, _CMP_GE_OQ));
+      den_n = _mm256_blendv_ps(den_n, _mm256_add_ps(den_n, r1), mall);
+      gn_n = _mm256_blendv_ps(gn_n, _mm256_add_ps(gn_n, r2), mall);
+      __m256 alive = _mm256_andnot_ps(_mm256_or_ps(mall, empty), _mm256_castsi256_ps(minus1));
+      if (_mm256_movemask_ps(alive)) {  // k becomes the front: entries beyond zp + T drop out
+        const __m256 lim = _mm256_add_ps(zq, vmerge);
+        for (int64_t e = 0; e < K; ++e) {
+          alive = _mm256_and_ps(alive, _mm256_and_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[e], minus1)),
+                                                     _mm256_cmp_ps(de[e], lim, _CMP_LE_OQ)));
+          den_n = _mm256_blendv_ps(den_n, _mm256_add_ps(den_n, re[e]), alive);
+          gn_n = _mm256_blendv_ps(gn_n, _mm256_add_ps(gn_n, _mm256_mul_ps(re[e], ge[e])), alive);
+        }
+      }
+      den = _mm256_blendv_ps(den_n, den, kvis);
+      gn = _mm256_blendv_ps(gn_n, gn, kvis);
+      zp = zq;
+      kase1 = k1;
+    }
+    const __m256 gsel = _mm256_blendv_ps(ld(a, R->plane(Rec::kGb)), _mm256_div_ps(gn, den), _mm256_cmp_ps(den, zero, _CMP_GT_OQ));
+    const __m256 gd = _mm256_sub_ps(gsel, ld(a, R->plane(Rec::kGi)));
+    const __m256 act = _mm256_and_ps(m, _mm256_cmp_ps(gd, zero, _CMP_LT_OQ));  // Eq. filteredG
+    __m256 act_v = _mm256_and_ps(act, kvis);
+    const __m256 act_n = _mm256_andnot_ps(kvis, act);
+    if (_mm256_movemask_ps(act_v)) {  // (c): step out of the splat along the ray, both ways
+      const __m256 sd = _mm256_sqrt_ps(_mm256_add_ps(_mm256_mul_ps(dxp, dxp), _mm256_mul_ps(dyp, dyp)));
+      act_v = _mm256_and_ps(act_v, _mm256_cmp_ps(sd, _mm256_set1_ps(1e-6f), _CMP_NLT_UQ));
+      const __m256 inv_sd = _mm256_div_ps(one, sd);
+      const __m256 ux = _mm256_mul_ps(dxp, inv_sd), uy = _mm256_mul_ps(dyp, inv_sd);
+      const __m256 qu = _mm256_add_ps(
+          _mm256_add_ps(_mm256_mul_ps(_mm256_mul_ps(s2, ux), ux), _mm256_mul_ps(_mm256_mul_ps(s3, ux), uy)),
+          _mm256_mul_ps(_mm256_mul_ps(s4, uy), uy));
+      const __m256 tiny = _mm256_set1_ps(1e-20f);
+      const __m256 qm = _mm256_blendv_ps(qu, tiny, _mm256_cmp_ps(qu, tiny, _CMP_LT_OQ));  // std::max(qu, 1e-20f)
+      const __m256 rr = _mm256_sqrt_ps(_mm256_div_ps(v2cut, qm));
+      __m256 t = _mm256_sub_ps(rr, sd);
+      t = _mm256_blendv_ps(t, zero, _mm256_cmp_ps(t, zero, _CMP_LT_OQ));  // std::max(rr - sd, 0.f)
+      const __m256 steps[2] = {_mm256_xor_ps(t, _mm256_set1_ps(-0.f)), _mm256_add_ps(rr, sd)};
+      float* outs[2][2] = {{out.a0x, out.a0y}, {out.a1x, out.a1y}};
+      for (int mm = 0; mm < 2; ++mm) {
+        const __m256 mx = _mm256_mul_ps(_mm256_mul_ps(steps[mm], ux), vzf);
+        const __m256 my = _mm256_mul_ps(_mm256_mul_ps(steps[mm], uy), vzf);
+        const __m256 coef =
+            _mm256_div_ps(gd, _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(mx, mx), _mm256_mul_ps(my, my)), veps));
+        _mm256_store_ps(outs[mm][0], _mm256_mul_ps(coef, mx));
+        _mm256_store_ps(outs[mm][1], _mm256_mul_ps(coef, my));
+      }
+    }
+    if (_mm256_movemask_ps(act_n)) {  // (a)/(b): towards the pixel's ray, (b) onto the front surface
+      const __m256 zt = _mm256_blendv_ps(zp, d0, kase1);
+      const __m256 zt_f = _mm256_mul_ps(zt, vinvf);
+      const __m256 mx = _mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(px, vcx), zt_f), vX);
+      const __m256 my = _mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(vpy, vcy), zt_f), vY);
+      const __m256 mz = _mm256_sub_ps(zt, zp);
+      const __m256 nrm = _mm256_add_ps(
+          _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(mx, mx), _mm256_mul_ps(my, my)), _mm256_mul_ps(mz, mz)), veps);
+      const __m256 coef = _mm256_div_ps(gd, nrm);
+      _mm256_store_ps(out.b0, _mm256_mul_ps(coef, mx));
+      _mm256_store_ps(out.b1, _mm256_mul_ps(coef, my));
+      _mm256_store_ps(out.b2, _mm256_mul_ps(coef, mz));
+    }
+    out.vbits = _mm256_movemask_ps(act_v);
+    out.nbits = _mm256_movemask_ps(act_n);
+  }
+};
+
+inline void add_lane(const VisChunkOut& o, int l, double acc[3]) {
+  if (o.vbits >> l & 1) {
+    acc[0] += o.a0x[l];
+    acc[1] += o.a0y[l];
+    acc[0] += o.a1x[l];
+    acc[1] += o.a1y[l];
+  } else if (o.nbits >> l & 1) {
+    acc[0] += o.b0[l];
+    acc[1] += o.b1[l];
+    acc[2] += o.b2[l];
+  }
+}
+
+template <int64_t KC, int64_t CC>
+DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
+                              int64_t H, int64_t W, int64_t window, int ic, int jc, double acc[3]) {
+  VisLanes<KC, CC> L;
+  L.init(rec, Krt, Crt, P, Q);
+  const int64_t n = 2 * window + 1, mw = n / 8 * 8;  // a row's first mw pixels in runs of 8
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256i minus1 = _mm256_set1_epi32(-1), vW = _mm256_set1_epi32((int)W);
+  const __m256 half = _mm256_set1_ps(0.5f);
+  VisChunkOut o;
+  for (int64_t i = ic - window; i <= ic + window; ++i) {
+    if (i < 0 || i >= H) continue;
+    const float py = (float)i + 0.5f;
+    for (int64_t j0 = jc - window; j0 < jc - window + mw; j0 += 8) {
+      if (j0 + 7 < 0 || j0 >= W) continue;
+      const __m256i vj = _mm256_add_epi32(_mm256_set1_epi32((int)j0), lane);
+      VisAddr a;
+      a.mode = (j0 >= 0 && j0 + 8 <= W) ? 0 : 1;
+      a.p0 = i * W + j0;
+      a.off = vj;
+      a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
+      L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
+      for (int bits = o.vbits | o.nbits; bits; bits &= bits - 1) add_lane(o, __builtin_ctz(bits), acc);
+    }
+    // the row's last n - mw pixels one at a time (a vector with one lane in use costs 3 scalar ones)
+    for (int64_t j = std::max<int64_t>(jc - window + mw, 0); j <= std::min<int64_t>(jc + window, W - 1); ++j) {
+      const int64_t p = i * W + j;
+      if (rec.nz(p) != 0.f) eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, acc);
+    }
+  }
+}
+#undef DSS_AVX2
+#endif
+
+// Whether visibility_backward takes the vector path (AVX2 CPUs; set_vector_path(false) forces the
+// scalar one, for tests and comparisons).
+std::atomic<bool> g_vector_path{true};
+bool vector_path_available() {
+#ifdef DSS_VIS_AVX2
+  static const bool has = __builtin_cpu_supports("avx2");
+  return has;
+#else
+  return false;
+#endif
+}
+
+}  // namespace
+
+// Enables / disables the vector visibility path; returns whether it was enabled before.
+bool set_vector_path(bool on) { return g_vector_path.exchange(on); }
+
 torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
                                   torch::Tensor rho, torch::Tensor images, torch::Tensor grad, torch::Tensor R,
                                   torch::Tensor focal, torch::Tensor principal, torch::Tensor background,
@@ -353,6 +796,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const int64_t V = packed.size(0), N = packed.size(1), H = idx.size(1), W = idx.size(2), K = idx.size(3);
   const int64_t C = attrs.size(2);
   TORCH_CHECK(C <= 16, "at most 16 channels");
+  TORCH_CHECK(K >= 1 && K <= 8, "K must be in [1, 8]");
   TORCH_CHECK(stride >= 1, "window stride must be >= 1");
   TORCH_CHECK(planes.numel() == V * N * 3, "planes must be (V,N,3)");
   const float cutoff = (float)cutoff_d, merge = (float)merge_d, eps = (float)eps_d;
@@ -371,209 +815,149 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const float* PP = principal.data_ptr<float>();
   const float* BG = background.data_ptr<float>();
 
-  // Everything a (point, pixel) evaluation reads about the pixel, in one record per pixel, so an
-  // evaluation is channel-free: with g = dL/dI at the pixel, only the projections g . w of the
-  // attributes matter (gd = g . I_new - g . I = (sum rho g.w) / (sum rho) - g . I). Record layout
-  // (floats): [0] front depth d0 (inf if empty), [1] sum rho and [2] sum rho g.w over the visible
-  // set, [3] g . I, [4] g . background, [5] 1 if g != 0, [6, 6+C) g, then per cache entry depth,
-  // rho and g.w (K each). Built for one view at a time (a few MB, cache-resident while that
-  // view's points read it); the cache indices are read from idx directly.
+  // The pixel record (VisRecord) of one view at a time: a few MB, cache-resident while that
+  // view's points read it; planes (structure of arrays) for the vector path, one record per
+  // pixel otherwise (a scalar evaluation then reads 2 cache lines, not one per field). Kept
+  // between calls (no fresh pages per call).
   const int64_t HW = H * W;
-  const int64_t RS = 6 + C + 3 * K;
-  const int64_t oD = 6 + C, oR = oD + K, oG = oR + K;
-  static thread_local std::vector<float> rec;  // kept between calls: no fresh pages per call
-  rec.resize((size_t)(HW * RS));
-  float* REC = rec.data();
+  const bool vec = mode == 0 && stride == 1 && vector_path_available() && g_vector_path.load();
   std::vector<double> gsum((size_t)(N * 3), 0.0);  // world gradient, summed over views in view order
   const int64_t Krt = K, Crt = C;  // run-time values; the evaluation loop may fix them at compile time
-  const int64_t kChunk = 64, nchunks = (N + kChunk - 1) / kChunk;
+  const int64_t kChunk = 64;
   const float inf = std::numeric_limits<float>::infinity();
-  for (int64_t v = 0; v < V; ++v) {
-    dynamic_for(H, 4, [&](int64_t i) {
-      for (int64_t j = 0; j < W; ++j) {
-        const int64_t g = (v * H + i) * W + j;
-        float* r = REC + (i * W + j) * RS;
-        const float* gp = GR + g * C;
-        bool nz = false;
-        for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
-        r[5] = nz ? 1.f : 0.f;
-        if (!nz) continue;  // no evaluation reads this record
-        const int32_t* pi = I + g * K;
-        const float* pd = D + g * K;
-        const float* pr = Rh + g * K;
-        const float* ip = IMG + g * C;
-        float gi = 0.f, gb = 0.f;
-        for (int64_t ch = 0; ch < C; ++ch) {
-          r[6 + ch] = gp[ch];
-          gi += gp[ch] * ip[ch];
-          gb += gp[ch] * BG[ch];
-        }
-        r[3] = gi;
-        r[4] = gb;
-        const float d0 = pi[0] >= 0 ? pd[0] : inf;
-        float den = 0.f, gnum = 0.f;
-        for (int64_t e = 0; e < K; ++e) {
-          r[oD + e] = pd[e];
-          r[oR + e] = pr[e];
-          float ga = 0.f;
-          if (pi[e] >= 0) {
-            const float* a = A + (v * N + pi[e]) * C;
-            for (int64_t ch = 0; ch < C; ++ch) ga += gp[ch] * a[ch];
+  static thread_local std::vector<float> rec_f;
+  static thread_local std::vector<int32_t> rec_i;
+  auto run = [&](auto layout) {
+    constexpr bool kSoA = decltype(layout)::value;
+    VisRecord<kSoA> rec;
+    rec.C_ = C;
+    rec.K_ = K;
+    if (kSoA) {
+      rec.S = VisRecord<kSoA>::plane_stride(HW);
+      rec_f.resize((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
+      rec_i.resize((size_t)(rec.S * K));
+      rec.ix = rec_i.data();
+    } else {
+      rec.S = VisRecord<kSoA>::fields(C, K);
+      rec_f.resize((size_t)(rec.S * HW));
+    }
+    rec.f = rec_f.data();
+    for (int64_t v = 0; v < V; ++v) {
+      if (!kSoA) rec.ix = const_cast<int32_t*>(I + v * HW * K);  // read only
+      dynamic_for(H, 4, [&](int64_t i) {
+        for (int64_t j = 0; j < W; ++j) {
+          const int64_t p = i * W + j, g = v * HW + p;
+          const float* gp = GR + g * C;
+          bool nz = false;
+          for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
+          rec.nz(p) = nz ? 1.f : 0.f;
+          if (!nz) continue;  // no evaluation reads this pixel further
+          const int32_t* pi = I + g * K;
+          const float* pd = D + g * K;
+          const float* pr = Rh + g * K;
+          const float* ip = IMG + g * C;
+          float gi = 0.f, gb = 0.f;
+          for (int64_t ch = 0; ch < C; ++ch) {
+            rec.g(ch, p) = gp[ch];
+            gi += gp[ch] * ip[ch];
+            gb += gp[ch] * BG[ch];
           }
-          r[oG + e] = ga;
-        }
-        for (int64_t e = 0; e < K && pi[e] >= 0 && pd[e] <= d0 + merge; ++e) {
-          den += pr[e];
-          gnum += pr[e] * r[oG + e];
-        }
-        r[0] = d0;
-        r[1] = den;
-        r[2] = gnum;
-      }
-    });
-    const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1], inv_f = 1.f / f;
-    const float* Rv = Rm + v * 9;
-    const float* PLv = PL + v * N * 3;
-    const int32_t* Iv = I + v * HW * K;
-    // A task is a run of consecutive (spatially sorted) points: their windows overlap in the
-    // record buffer. Each point is one task's, so it owns its gsum row (no race, view order kept).
-    // The evaluation loop, compiled for the common (K, C) = (5, 3) and (5, 1) with constant
-    // trip counts (the cache scans and channel dots unroll) and for any (K, C) at run time.
-    auto points_task = [&](auto KT, auto CT, int64_t task) {
-      constexpr int64_t KC = decltype(KT)::value, CC = decltype(CT)::value;
-      const int64_t K = KC > 0 ? KC : Krt, C = CC > 0 ? CC : Crt;
-      const int64_t RS = 6 + C + 3 * K, oD = 6 + C, oR = oD + K, oG = oR + K;
-      const int64_t k_begin = task * kChunk, k_end = std::min(N, k_begin + kChunk);
-      for (int64_t k = k_begin; k < k_end; ++k) {
-        const float* s = P + (v * N + k) * kFields;
-        if (!(s[9] > 0.f)) continue;
-        const float u = s[0], vv = s[1], z = s[6], nk = s[5];
-        const float z_f = z * inv_f;  // camera units per pixel at the point's depth
-        const float X = (u - cx) * z_f, Y = (vv - cy) * z_f;
-        const float* wk = A + (v * N + k) * C;
-        const float* pl = PLv + k * 3;
-        const float slope = kMaxSlope * z_f;  // plane-depth clamp per pixel of distance
-        const int ic = (int)std::floor(vv), jc = (int)std::floor(u);
-        double acc[3] = {0, 0, 0};
-        for (int64_t dy = -window; dy <= window; dy += stride) {
-          const int64_t i = ic + dy;
-          if (i < 0 || i >= H) continue;
-          const float py = (float)i + 0.5f;
-          for (int64_t dx = -window; dx <= window; dx += stride) {
-            const int64_t j = jc + dx;
-            if (j < 0 || j >= W) continue;
-            const float* r = REC + (i * W + j) * RS;
-            if (r[5] == 0.f) continue;
-            const int32_t* pi = Iv + (i * W + j) * K;
-            const float* pd = r + oD;
-            const float* pr = r + oR;
-            const float* pg = r + oG;
-            const float d0 = r[0];
-            int ek = -1;  // position of k in the cache
-            for (int e = 0; e < K && pi[e] >= 0; ++e)
-              if (pi[e] == (int32_t)k) { ek = e; break; }
-            const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
-            const float px = (float)j + 0.5f;
-            float zp = 0.f;  // k's tangent-plane depth at the pixel: only needed when k is not visible
-            float den, gn;   // sum rho and sum rho g.w of the visible set after the change
-            int kase;        // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
-            if (k_visible) {
-              kase = 2;
-              if (ek > 0) {  // the front stays: the visible set loses k only
-                den = r[1] - pr[ek];
-                gn = r[2] - pr[ek] * pg[ek];
-                if (!(den > 0.f)) den = 0.f;
-              } else {  // k was the front: the next entry is the new front, may reveal others
-                den = 0.f;
-                gn = 0.f;
-                if (K > 1 && pi[1] >= 0) {
-                  const float lim = pd[1] + merge;
-                  for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
-                    den += pr[e];
-                    gn += pr[e] * pg[e];
-                  }
-                }
-              }
-            } else {
-              // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
-              const float iz = pl[0] * px + pl[1] * py + pl[2];
-              zp = iz > 0.f ? 1.f / iz : z;
-              const float d2 = (px - u) * (px - u) + (py - vv) * (py - vv);
-              const float dz = zp - z;
-              if (dz * dz > slope * slope * d2) {
-                const float dmax = slope * std::sqrt(d2);
-                zp = std::min(std::max(zp, z - dmax), z + dmax);
-              }
-              kase = (pi[0] < 0 || zp <= d0 + merge) ? 0 : 1;
-              float gw = 0.f;
-              for (int64_t ch = 0; ch < C; ++ch) gw += r[6 + ch] * wk[ch];
-              den = nk;
-              gn = nk * gw;
-              if (kase == 1 || zp >= d0) {  // merges with the current visible set
-                den += r[1];
-                gn += r[2];
-              } else if (pi[0] >= 0) {  // k becomes the front: entries beyond zp + T drop out
-                const float lim = zp + merge;
-                for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
-                  den += pr[e];
-                  gn += pr[e] * pg[e];
-                }
-              }
+          rec.gi(p) = gi;
+          rec.gb(p) = gb;
+          const float d0 = pi[0] >= 0 ? pd[0] : inf;
+          float gwe[8];
+          for (int64_t e = 0; e < K; ++e) {
+            if (kSoA) rec.idx(e, p) = pi[e];
+            rec.dep(e, p) = pd[e];
+            rec.rho(e, p) = pr[e];
+            float ga = 0.f;
+            if (pi[e] >= 0) {
+              const float* a = A + (v * N + pi[e]) * C;
+              for (int64_t ch = 0; ch < C; ++ch) ga += gp[ch] * a[ch];
             }
-            const float gd = (den > 0.f ? gn / den : r[4]) - r[3];
-            if (mode == 0) {  // dss: linearised step between the two visibility states
-              if (!(gd < 0.f)) continue;  // Eq. filteredG
-              if (kase == 2) {
-                const float ddx = px - u, ddy = py - vv;
-                const float sd = std::sqrt(ddx * ddx + ddy * ddy);
-                if (sd < 1e-6f) continue;
-                const float inv_sd = 1.f / sd;
-                const float ux = ddx * inv_sd, uy = ddy * inv_sd;
-                const float qu = quad(s, ux, uy);
-                const float rr = std::sqrt(2.f * cutoff / std::max(qu, 1e-20f));
-                const float steps[2] = {-(std::max(rr - sd, 0.f)), rr + sd};
-                for (int m = 0; m < 2; ++m) {
-                  const float mx = steps[m] * ux * z_f, my = steps[m] * uy * z_f;
-                  const float coef = gd / (mx * mx + my * my + eps);
-                  acc[0] += coef * mx;
-                  acc[1] += coef * my;
-                }
-              } else {
-                const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
-                const float zt_f = zt * inv_f;
-                const float mx = (px - cx) * zt_f - X, my = (py - cy) * zt_f - Y, mz = zt - zp;
-                const float coef = gd / (mx * mx + my * my + mz * mz + eps);
-                acc[0] += coef * mx;
-                acc[1] += coef * my;
-                acc[2] += coef * mz;
-              }
-            } else {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
-              const float ddx = px - u, ddy = py - vv;
-              const float q = quad(s, ddx, ddy);
-              const float h = std::exp(-0.5f * q);
-              const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
-              const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);  // dh/du_k = h Sigma^-1 d
-              const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
-              const float c = sgn * gd;
-              acc[0] += c * (f / z) * gu;
-              acc[1] += c * (f / z) * gv;
-              acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
+            rec.gw(e, p) = gwe[e] = ga;
+          }
+          float den = 0.f, gnum = 0.f;
+          for (int64_t e = 0; e < K && pi[e] >= 0 && pd[e] <= d0 + merge; ++e) {
+            den += pr[e];
+            gnum += pr[e] * gwe[e];
+          }
+          rec.d0(p) = d0;
+          rec.den(p) = den;
+          rec.gn(p) = gnum;
+        }
+      });
+      const VisConsts Q{F[v], PP[v * 2], PP[v * 2 + 1], 1.f / F[v], cutoff, merge, eps};
+      const float* Rv = Rm + v * 9;
+      const float* PLv = PL + v * N * 3;
+      // A task is a run of consecutive (spatially sorted) points: their windows overlap in the
+      // record. Each point is one task's, so it owns its gsum row (no race; views added in view
+      // order). (Ordering the points by screen tile first measured no faster.)
+      const int64_t nchunks = (N + kChunk - 1) / kChunk;
+      // The evaluation, compiled for the common (K, C) = (5, 3) and (5, 1) with constant trip
+      // counts (the cache scans and channel dots unroll) and for any (K, C) at run time.
+      auto points_task = [&](auto KT, auto CT, int64_t task) {
+        constexpr int64_t KC = decltype(KT)::value, CC = decltype(CT)::value;
+        const auto R = rec.template fixed<KC, CC>();
+        const int64_t k_begin = task * kChunk, k_end = std::min(N, k_begin + kChunk);
+        for (int64_t k = k_begin; k < k_end; ++k) {
+          const float* s = P + (v * N + k) * kFields;
+          if (!(s[9] > 0.f)) continue;
+          VisPoint pt;
+          pt.s = s;
+          pt.wk = A + (v * N + k) * Crt;
+          pt.pl = PLv + k * 3;
+          pt.k = (int32_t)k;
+          pt.u = s[0];
+          pt.v = s[1];
+          pt.z = s[6];
+          pt.nk = s[5];
+          pt.z_f = pt.z * Q.inv_f;
+          pt.X = (pt.u - Q.cx) * pt.z_f;
+          pt.Y = (pt.v - Q.cy) * pt.z_f;
+          pt.slope = kMaxSlope * pt.z_f;
+          const int ic = (int)std::floor(pt.v), jc = (int)std::floor(pt.u);
+          double acc[3] = {0, 0, 0};
+          bool done = false;
+#ifdef DSS_VIS_AVX2
+          if constexpr (kSoA) {
+            if (vec) {
+              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, acc);
+              done = true;
             }
           }
+#endif
+          for (int64_t dy = -window; dy <= window && !done; dy += stride) {
+            const int64_t i = ic + dy;
+            if (i < 0 || i >= H) continue;
+            const float py = (float)i + 0.5f;
+            for (int64_t dx = -window; dx <= window; dx += stride) {
+              const int64_t j = jc + dx;
+              if (j < 0 || j >= W) continue;
+              const int64_t p = i * W + j;
+              if (R.nz(p) == 0.f) continue;
+              eval_scalar<KC, CC>(R, Krt, Crt, pt, Q, mode, p, (float)j + 0.5f, py, acc);
+            }
+          }
+          double* gk = gsum.data() + k * 3;  // world gradient = R^T acc
+          for (int a = 0; a < 3; ++a)
+            gk[a] += Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
         }
-        double* gk = gsum.data() + k * 3;  // world gradient = R^T acc
-        for (int a = 0; a < 3; ++a) gk[a] += Rv[0 * 3 + a] * acc[0] + Rv[1 * 3 + a] * acc[1] + Rv[2 * 3 + a] * acc[2];
-      }
-    };
-    using K5 = std::integral_constant<int64_t, 5>;
-    using Any = std::integral_constant<int64_t, 0>;
-    if (Krt == 5 && Crt == 3)
-      dynamic_for(nchunks, 1, [&](int64_t t) { points_task(K5{}, std::integral_constant<int64_t, 3>{}, t); });
-    else if (Krt == 5 && Crt == 1)
-      dynamic_for(nchunks, 1, [&](int64_t t) { points_task(K5{}, std::integral_constant<int64_t, 1>{}, t); });
-    else
-      dynamic_for(nchunks, 1, [&](int64_t t) { points_task(Any{}, Any{}, t); });
-  }
+      };
+      using K5 = std::integral_constant<int64_t, 5>;
+      using Any = std::integral_constant<int64_t, 0>;
+      if (Krt == 5 && Crt == 3)
+        dynamic_for(nchunks, 1, [&](int64_t t) { points_task(K5{}, std::integral_constant<int64_t, 3>{}, t); });
+      else if (Krt == 5 && Crt == 1)
+        dynamic_for(nchunks, 1, [&](int64_t t) { points_task(K5{}, std::integral_constant<int64_t, 1>{}, t); });
+      else
+        dynamic_for(nchunks, 1, [&](int64_t t) { points_task(Any{}, Any{}, t); });
+    }
+  };
+  if (vec)
+    run(std::true_type{});
+  else
+    run(std::false_type{});
   for (int64_t e = 0; e < N * 3; ++e) G[e] = (float)gsum[e];
   return out;
 }
@@ -923,6 +1307,9 @@ std::vector<torch::Tensor> smape_sum(torch::Tensor pred, torch::Tensor target, d
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
+  m.def("set_vector_path", &set_vector_path,
+        "enable/disable the AVX2 path of visibility_backward (dss rule); returns the previous setting");
+  m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 path");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
   m.def("smape_sum", &smape_sum, "SMAPE sum and its derivative in one pass (CPU)");
