@@ -533,11 +533,13 @@ namespace {
 
 #define DSS_AVX2 __attribute__((target("avx2")))
 
-// One chunk's contributions: per lane the two (c) steps (a0, a1: x, y) or the (a)/(b) step
-// (b: x, y, z); vbits / nbits: the lanes whose (c) / (a)(b) contribution counts.
+// One chunk's contributions, added per lane as acc += (x1, y1, 0); acc += (x2, y2, z): the two
+// (c) steps (z = 0) or the (a)/(b) step (x2 = y2 = 0). Adding +0 leaves a sum that started at
+// +0 unchanged, so this is the scalar walk's sum without a branch on the case. bits: the lanes
+// that contribute.
 struct alignas(32) VisChunkOut {
-  float a0x[8], a0y[8], a1x[8], a1y[8], b0[8], b1[8], b2[8];
-  int vbits, nbits;
+  float x1[8], y1[8], x2[8], y2[8], z[8];
+  int bits;
 };
 
 // Where a chunk's 8 pixels are: mode 0: offsets p0 + l, all on the image (plain loads); mode 1:
@@ -588,7 +590,7 @@ struct VisLanes {
   DSS_AVX2 void eval(const VisAddr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.f);
     const __m256i minus1 = _mm256_set1_epi32(-1);
-    out.vbits = out.nbits = 0;
+    out.bits = 0;
     const __m256 m = _mm256_and_ps(_mm256_castsi256_ps(a.oki), _mm256_cmp_ps(ld(a, R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ));
     if (_mm256_movemask_ps(m) == 0) return;
     const __m256 d0 = ld(a, R->plane(Rec::kD0)), r1 = ld(a, R->plane(Rec::kDen)), r2 = ld(a, R->plane(Rec::kGn));
@@ -670,6 +672,7 @@ struct VisLanes {
     const __m256 act = _mm256_and_ps(m, _mm256_cmp_ps(gd, zero, _CMP_LT_OQ));  // Eq. filteredG
     __m256 act_v = _mm256_and_ps(act, kvis);
     const __m256 act_n = _mm256_andnot_ps(kvis, act);
+    __m256 c[2][2] = {{zero, zero}, {zero, zero}}, b[3] = {zero, zero, zero};
     if (_mm256_movemask_ps(act_v)) {  // (c): step out of the splat along the ray, both ways
       const __m256 sd = _mm256_sqrt_ps(_mm256_add_ps(_mm256_mul_ps(dxp, dxp), _mm256_mul_ps(dyp, dyp)));
       act_v = _mm256_and_ps(act_v, _mm256_cmp_ps(sd, _mm256_set1_ps(1e-6f), _CMP_NLT_UQ));
@@ -684,14 +687,13 @@ struct VisLanes {
       __m256 t = _mm256_sub_ps(rr, sd);
       t = _mm256_blendv_ps(t, zero, _mm256_cmp_ps(t, zero, _CMP_LT_OQ));  // std::max(rr - sd, 0.f)
       const __m256 steps[2] = {_mm256_xor_ps(t, _mm256_set1_ps(-0.f)), _mm256_add_ps(rr, sd)};
-      float* outs[2][2] = {{out.a0x, out.a0y}, {out.a1x, out.a1y}};
       for (int mm = 0; mm < 2; ++mm) {
         const __m256 mx = _mm256_mul_ps(_mm256_mul_ps(steps[mm], ux), vzf);
         const __m256 my = _mm256_mul_ps(_mm256_mul_ps(steps[mm], uy), vzf);
         const __m256 coef =
             _mm256_div_ps(gd, _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(mx, mx), _mm256_mul_ps(my, my)), veps));
-        _mm256_store_ps(outs[mm][0], _mm256_mul_ps(coef, mx));
-        _mm256_store_ps(outs[mm][1], _mm256_mul_ps(coef, my));
+        c[mm][0] = _mm256_mul_ps(coef, mx);
+        c[mm][1] = _mm256_mul_ps(coef, my);
       }
     }
     if (_mm256_movemask_ps(act_n)) {  // (a)/(b): towards the pixel's ray, (b) onto the front surface
@@ -703,27 +705,18 @@ struct VisLanes {
       const __m256 nrm = _mm256_add_ps(
           _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(mx, mx), _mm256_mul_ps(my, my)), _mm256_mul_ps(mz, mz)), veps);
       const __m256 coef = _mm256_div_ps(gd, nrm);
-      _mm256_store_ps(out.b0, _mm256_mul_ps(coef, mx));
-      _mm256_store_ps(out.b1, _mm256_mul_ps(coef, my));
-      _mm256_store_ps(out.b2, _mm256_mul_ps(coef, mz));
+      b[0] = _mm256_mul_ps(coef, mx);
+      b[1] = _mm256_mul_ps(coef, my);
+      b[2] = _mm256_mul_ps(coef, mz);
     }
-    out.vbits = _mm256_movemask_ps(act_v);
-    out.nbits = _mm256_movemask_ps(act_n);
+    _mm256_store_ps(out.x1, _mm256_blendv_ps(b[0], c[0][0], kvis));
+    _mm256_store_ps(out.y1, _mm256_blendv_ps(b[1], c[0][1], kvis));
+    _mm256_store_ps(out.x2, _mm256_and_ps(c[1][0], kvis));
+    _mm256_store_ps(out.y2, _mm256_and_ps(c[1][1], kvis));
+    _mm256_store_ps(out.z, _mm256_andnot_ps(kvis, b[2]));
+    out.bits = _mm256_movemask_ps(_mm256_or_ps(act_v, act_n));
   }
 };
-
-inline void add_lane(const VisChunkOut& o, int l, double acc[3]) {
-  if (o.vbits >> l & 1) {
-    acc[0] += o.a0x[l];
-    acc[1] += o.a0y[l];
-    acc[0] += o.a1x[l];
-    acc[1] += o.a1y[l];
-  } else if (o.nbits >> l & 1) {
-    acc[0] += o.b0[l];
-    acc[1] += o.b1[l];
-    acc[2] += o.b2[l];
-  }
-}
 
 template <int64_t KC, int64_t CC>
 DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
@@ -735,6 +728,7 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
   const __m256i minus1 = _mm256_set1_epi32(-1), vW = _mm256_set1_epi32((int)W);
   const __m256 half = _mm256_set1_ps(0.5f);
   VisChunkOut o;
+  double a0 = acc[0], a1 = acc[1], a2 = acc[2];  // in registers: acc would go through memory
   for (int64_t i = ic - window; i <= ic + window; ++i) {
     if (i < 0 || i >= H) continue;
     const float py = (float)i + 0.5f;
@@ -747,14 +741,25 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
       a.off = vj;
       a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
       L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
-      for (int bits = o.vbits | o.nbits; bits; bits &= bits - 1) add_lane(o, __builtin_ctz(bits), acc);
+      for (int bits = o.bits; bits; bits &= bits - 1) {
+        const int l = __builtin_ctz(bits);
+        a0 += o.x1[l];
+        a1 += o.y1[l];
+        a0 += o.x2[l];
+        a1 += o.y2[l];
+        a2 += o.z[l];
+      }
     }
     // the row's last n - mw pixels one at a time (a vector with one lane in use costs 3 scalar ones)
     for (int64_t j = std::max<int64_t>(jc - window + mw, 0); j <= std::min<int64_t>(jc + window, W - 1); ++j) {
       const int64_t p = i * W + j;
-      if (rec.nz(p) != 0.f) eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, acc);
+      if (rec.nz(p) == 0.f) continue;
+      double t[3] = {a0, a1, a2};
+      eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, t);
+      a0 = t[0], a1 = t[1], a2 = t[2];
     }
   }
+  acc[0] = a0, acc[1] = a1, acc[2] = a2;
 }
 #undef DSS_AVX2
 #endif
