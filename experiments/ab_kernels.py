@@ -29,6 +29,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 SOURCE = "dss/csrc/dss_cpu.cpp"
 KERNELS = ("rasterize_forward", "visibility_backward", "blend_backward")
+VIS_WINDOW_ARG = 12  # position of the window half size in visibility_backward's arguments
 
 
 def capture_inputs(kind: str, n_points: int, views: int, size: int) -> dict:
@@ -109,6 +110,9 @@ def run(argv=None) -> dict:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--reps", type=int, default=12)
     ap.add_argument("--skip", type=int, default=2, help="warm-up calls of each build left out of the medians")
+    ap.add_argument("--window", type=int, default=None,
+                    help="visibility_backward only: call it with this window half size (px) instead of the "
+                         "captured step's (4)")
     ap.add_argument("--out", default=None, help="JSON file for the result")
     args = ap.parse_args(argv)
     if args.reps <= args.skip:
@@ -117,6 +121,11 @@ def run(argv=None) -> dict:
     inputs = capture_inputs(args.kind, args.points, args.views, args.image_size)
     if args.kernel not in inputs:
         raise SystemExit(f"a {args.kind} step does not call {args.kernel}")
+    call_args = list(inputs[args.kernel])
+    if args.window is not None:
+        if args.kernel != "visibility_backward" or args.window < 0:
+            raise SystemExit("--window needs --kernel visibility_backward and a window >= 0")
+        call_args[VIS_WINDOW_ARG] = args.window
     sources = {"base": git_source(args.base), "work": (REPO / SOURCE).read_text()}
     times: dict = {k: [] for k in sources}
     with tempfile.TemporaryDirectory() as tmp:
@@ -124,11 +133,12 @@ def run(argv=None) -> dict:
         for _ in range(args.reps):
             for k, mod in mods.items():
                 t0 = time.perf_counter()
-                out = getattr(mod, args.kernel)(*inputs[args.kernel])
+                out = getattr(mod, args.kernel)(*call_args)
                 times[k].append(1e3 * (time.perf_counter() - t0))
                 del out
     med = {k: statistics.median(v[args.skip:]) for k, v in times.items()}
     result = {"kernel": args.kernel, "base": args.base, "kind": args.kind, "points": args.points,
+              "window": call_args[VIS_WINDOW_ARG] if args.kernel == "visibility_backward" else None,
               "views": args.views, "image_size": args.image_size, "threads": args.threads,
               "median_ms": med, "speedup": med["base"] / med["work"], "runs_ms": times,
               "command": "python -m experiments.ab_kernels " + " ".join(sys.argv[1:] if argv is None else argv)}

@@ -326,6 +326,8 @@ def to_markdown(result: dict) -> str:
          f"Other processes used {m.get('other_processes_mean_cores', '?')} cores on average while it ran "
          "(other jobs on the machine make timings noisy). "
          f"CUDA column: {cols['cuda']}.", "",
+         "Clouds: " + "; ".join(f"{w['points']} points: {w.get('source', '?')}" for w in result["workloads"])
+         + ".", "",
          "Forward / backward: ms per step (median over the measured steps of each kind, averaged with the paper's "
          "step counts as weights). **Total (s) is estimated** from the measured per-step medians, "
          "sum over kinds of (forward + backward) x steps, not timed over a full run; the paper's totals are "

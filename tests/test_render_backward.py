@@ -399,14 +399,15 @@ def _cpu_has_avx2() -> bool:
         return False
 
 
-@pytest.mark.parametrize(("K", "C", "window"), [(5, 3, 4), (5, 1, 4), (3, 3, 7), (8, 2, 8), (5, 3, 0), (2, 1, 3)])
+@pytest.mark.parametrize(("K", "C", "window"), [(5, 3, 4), (5, 1, 4), (3, 3, 7), (8, 2, 8), (5, 3, 12), (2, 1, 5)])
 def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend):
     """The AVX2 evaluation of the dss rule (8 pixels of a window row per vector, every case
     computed in every lane) gives exactly the scalar evaluation's gradient: the same float32
     operations per lane and the contributions added in the scalar walk's order. The parameters
     cover the compiled (K, C) variants and the run-time one, windows whose rows are runs of 8
-    plus a rest (4: 8 + 1, 7: 8 + 7, 8: 16 + 1) or only a rest (0, 3), and points near and
-    beyond the image border (runs partly off the image use masked loads)."""
+    plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1), and points near and
+    beyond the image border (runs partly off the image use masked loads). Narrower windows take
+    the scalar path (nothing to compare)."""
     from dss import _ext
     from dss.splats import tangent_planes
 

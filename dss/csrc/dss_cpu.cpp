@@ -518,13 +518,13 @@ inline void eval_scalar(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& 
   }
 }
 
-// The dss rule over a point's whole window, 8 pixels per AVX2 vector: every case is computed in
-// every lane and the lane's own case selected by masks; the same float32 operations in the same
-// order as eval_scalar per lane, and the lanes' contributions added to acc in the scalar walk's
-// order afterwards, so the result is bit for bit the scalar one (tests/test_render_backward.py
-// checks). A stride-1 window is cut into row runs of 8 pixels (one load per record plane) and
-// the columns left over (the 9th of a 9-wide window) are gathered 8 at a time across rows; a
-// sparse (stride > 1) window is gathered whole, 8 pixels at a time.
+// The dss rule over a point's stride-1 window, 8 pixels of a window row per AVX2 vector: every
+// case is computed in every lane and the lane's own case selected by masks; the same float32
+// operations in the same order as eval_scalar per lane, and the lanes' contributions added to
+// acc in the scalar walk's order, so the result is bit for bit the scalar one
+// (tests/test_render_backward.py checks). A row's pixels beyond its runs of 8 (the 9th of a
+// 9-wide window) go through eval_scalar. Windows narrower than 8 pixels, sparse (stride > 1)
+// windows and the rbf rule take the scalar path.
 #if defined(__x86_64__) && defined(__GNUC__)
 #define DSS_VIS_AVX2 1
 }  // namespace
@@ -542,12 +542,13 @@ struct alignas(32) VisChunkOut {
   int bits;
 };
 
-// Where a chunk's 8 pixels are: mode 0: offsets p0 + l, all on the image (plain loads); mode 1:
-// p0 + l, lanes outside oki not read (masked loads); mode 2: off[l] for lanes in oki (gathers).
+// Where a chunk's 8 pixels are: offsets p0 + l of a window row; masked: lanes outside oki (off
+// the image) are not read. (AVX2 gathers, or vectors assembled from single loads, for pixels not
+// in one row measured slower than evaluating those pixels one at a time.)
 struct VisAddr {
-  int mode;
+  bool masked;
   int64_t p0;
-  __m256i off, oki;
+  __m256i oki;
 };
 
 template <int64_t KC, int64_t CC>
@@ -576,14 +577,11 @@ struct VisLanes {
   }
 
   static DSS_AVX2 inline __m256 ld(const VisAddr& a, const float* plane) {
-    if (a.mode == 0) return _mm256_loadu_ps(plane + a.p0);
-    if (a.mode == 1) return _mm256_maskload_ps(plane + a.p0, a.oki);
-    return _mm256_mask_i32gather_ps(_mm256_setzero_ps(), plane, a.off, _mm256_castsi256_ps(a.oki), 4);
+    return a.masked ? _mm256_maskload_ps(plane + a.p0, a.oki) : _mm256_loadu_ps(plane + a.p0);
   }
   static DSS_AVX2 inline __m256i ldi(const VisAddr& a, const int32_t* plane) {
-    if (a.mode == 0) return _mm256_loadu_si256((const __m256i*)(plane + a.p0));
-    if (a.mode == 1) return _mm256_maskload_epi32((const int*)(plane + a.p0), a.oki);
-    return _mm256_mask_i32gather_epi32(_mm256_setzero_si256(), (const int*)plane, a.off, a.oki, 4);
+    return a.masked ? _mm256_maskload_epi32((const int*)(plane + a.p0), a.oki)
+                    : _mm256_loadu_si256((const __m256i*)(plane + a.p0));
   }
 
   // The 8 evaluations of one chunk; (px, py) the pixel centres.
@@ -736,9 +734,8 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
       if (j0 + 7 < 0 || j0 >= W) continue;
       const __m256i vj = _mm256_add_epi32(_mm256_set1_epi32((int)j0), lane);
       VisAddr a;
-      a.mode = (j0 >= 0 && j0 + 8 <= W) ? 0 : 1;
+      a.masked = !(j0 >= 0 && j0 + 8 <= W);
       a.p0 = i * W + j0;
-      a.off = vj;
       a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
       L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
       for (int bits = o.bits; bits; bits &= bits - 1) {
@@ -825,7 +822,9 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   // pixel otherwise (a scalar evaluation then reads 2 cache lines, not one per field). Kept
   // between calls (no fresh pages per call).
   const int64_t HW = H * W;
-  const bool vec = mode == 0 && stride == 1 && vector_path_available() && g_vector_path.load();
+  // The vector path needs window rows of at least 8 pixels (window >= 4); narrower windows would
+  // only run eval_scalar on planes, slower than on per-pixel records.
+  const bool vec = mode == 0 && stride == 1 && 2 * window + 1 >= 8 && vector_path_available() && g_vector_path.load();
   std::vector<double> gsum((size_t)(N * 3), 0.0);  // world gradient, summed over views in view order
   const int64_t Krt = K, Crt = C;  // run-time values; the evaluation loop may fix them at compile time
   const int64_t kChunk = 64;
