@@ -14,9 +14,12 @@
 //      shared memory in batches of 256 splats and each pixel keeps its top-K (depth, index) list
 //      in registers (K is a template parameter so the insertion unrolls); then the cache is
 //      written and the visible entries are blended (Eq. sumI).
-// Backward: one thread per (view, point) evaluates the window around the point exactly as
-// dss_cpu.cpp visibility_backward does, and writes its world-space contribution (double); a
-// second kernel sums the views of every point in view order. No atomics: deterministic.
+// Backward: one thread per (view, pixel) builds the pixel records of dss_cpu.cpp
+// visibility_backward (the loss gradient's projections g . w of the cached attributes, so an
+// evaluation is channel-free); then one thread per (view, point) evaluates the window around the
+// point exactly as the CPU kernel's scalar path does and writes its world-space contribution
+// (double); a third kernel sums the views of every point in view order. No atomics:
+// deterministic.
 //
 // Only the CUDA runtime is needed here; the torch glue is dss_cuda_bind.cpp.
 #include "dss_cuda.h"
@@ -75,17 +78,8 @@ __device__ __forceinline__ float quad(float a, float b2, float c, float dx, floa
   return (t1 + t2) + t3;
 }
 
-// The depth of point k's tangent plane at pixel (px, py), clamped (the rule at kMaxSlope in dss_cpu.cpp).
+// The tangent-plane depth clamp's slope (the rule at kMaxSlope in dss_cpu.cpp).
 constexpr float kMaxSlope = 3.f;
-__device__ __forceinline__ float plane_depth(const float* pl, float px, float py, float z, float dist_px, float f) {
-  const float iz = pl[0] * px + pl[1] * py + pl[2];
-  float zp = iz > 0.f ? 1.f / iz : z;
-  const float dmax = kMaxSlope * dist_px * z / f;
-  const float lo = z - dmax, hi = z + dmax;
-  zp = (zp < lo) ? lo : zp;  // std::max(zp, lo)
-  zp = (hi < zp) ? hi : zp;  // std::min(zp, hi)
-  return zp;
-}
 
 // Strict total order of cache entries: depth, then point index.
 __device__ __forceinline__ bool before(float za, int ia, float zb, int ib) {
@@ -252,16 +246,71 @@ __global__ void __launch_bounds__(kBlockPixels)
     if (ch < C) IMG[g * C + ch] = den > 0.f ? num[ch] / den : BG[ch];
 }
 
-// Per (view, point): the window loop of dss_cpu.cpp visibility_backward, expression for expression.
-template <int CMAX>
+// Per (view, pixel): the pixel record of dss_cpu.cpp visibility_backward (one record per pixel,
+// RS = 6 + C + 3K floats): [0] 1 if the loss gradient g != 0 (else nothing more is written or
+// read), [1] front depth d0 (inf if empty), [2] sum rho and [3] sum rho g.w over the visible set,
+// [4] g . I, [5] g . background, [6, 6+C) g, then per cache entry its depth, rho and g . w (K
+// each). Same expressions in the same order as the CPU builder.
+__global__ void vis_records_kernel(const float* __restrict__ A, const int32_t* __restrict__ I,
+                                   const float* __restrict__ D, const float* __restrict__ Rh,
+                                   const float* __restrict__ IMG, const float* __restrict__ GR,
+                                   const float* __restrict__ BG, int64_t V, int64_t N, int H, int W, int K, int C,
+                                   float merge, float* __restrict__ REC) {
+  const int64_t g = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  const int64_t HW = (int64_t)H * W;
+  if (g >= V * HW) return;
+  const int64_t v = g / HW;
+  const int RS = 6 + C + 3 * K;
+  float* r = REC + g * RS;
+  const float* gp = GR + g * C;
+  bool nz = false;
+  for (int ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
+  r[0] = nz ? 1.f : 0.f;
+  if (!nz) return;
+  const int32_t* pi = I + g * K;
+  const float* pd = D + g * K;
+  const float* pr = Rh + g * K;
+  const float* ip = IMG + g * C;
+  float gi = 0.f, gb = 0.f;
+  for (int ch = 0; ch < C; ++ch) {
+    r[6 + ch] = gp[ch];
+    gi += gp[ch] * ip[ch];
+    gb += gp[ch] * BG[ch];
+  }
+  r[4] = gi;
+  r[5] = gb;
+  const float d0 = pi[0] >= 0 ? pd[0] : INFINITY;
+  float* rd = r + 6 + C;
+  float* rr = rd + K;
+  float* rg = rr + K;
+  for (int e = 0; e < K; ++e) {
+    rd[e] = pd[e];
+    rr[e] = pr[e];
+    float ga = 0.f;
+    if (pi[e] >= 0) {
+      const float* a = A + (v * N + pi[e]) * C;
+      for (int ch = 0; ch < C; ++ch) ga += gp[ch] * a[ch];
+    }
+    rg[e] = ga;
+  }
+  float den = 0.f, gnum = 0.f;
+  for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= d0 + merge; ++e) {
+    den += pr[e];
+    gnum += pr[e] * rg[e];
+  }
+  r[1] = d0;
+  r[2] = den;
+  r[3] = gnum;
+}
+
+// Per (view, point): the window loop of dss_cpu.cpp visibility_backward over the pixel records
+// (vis_state and eval_scalar there), expression for expression.
 __global__ void visibility_kernel(const float* __restrict__ P, const float* __restrict__ A,
-                                  const int32_t* __restrict__ I, const float* __restrict__ D,
-                                  const float* __restrict__ Rh, const float* __restrict__ IMG,
-                                  const float* __restrict__ GR, const float* __restrict__ Rm,
-                                  const float* __restrict__ F, const float* __restrict__ PP,
-                                  const float* __restrict__ BG, const float* __restrict__ PL, int64_t V,
-                                  int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
-                                  float merge, float eps, int mode, double* __restrict__ partial) {
+                                  const int32_t* __restrict__ I, const float* __restrict__ REC,
+                                  const float* __restrict__ Rm, const float* __restrict__ F,
+                                  const float* __restrict__ PP, const float* __restrict__ PL, int64_t V, int64_t N,
+                                  int H, int W, int K, int C, int window, int stride, float cutoff, float merge,
+                                  float eps, int mode, double* __restrict__ partial) {
   const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (item >= V * N) return;
   const int64_t v = item / N;
@@ -274,107 +323,92 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
     out[2] = 0.0;
     return;
   }
+  const int RS = 6 + C + 3 * K;
+  const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1], inv_f = 1.f / f;
   const float u = s[0], vv = s[1], z = s[6], nk = s[5];
-  const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1];
-  const float X = (u - cx) * z / f, Y = (vv - cy) * z / f;
+  const float z_f = z * inv_f;  // camera units per pixel at the point's depth
+  const float X = (u - cx) * z_f, Y = (vv - cy) * z_f;
+  const float slope = kMaxSlope * z_f;
   const float* wk = A + item * C;
+  const float* pl = PL + item * 3;
   const int ic = (int)floorf(vv), jc = (int)floorf(u);
+  const int64_t HW = (int64_t)H * W;
   double acc[3] = {0, 0, 0};
   for (int64_t dy = -window; dy <= window; dy += stride) {
     const int64_t i = ic + dy;
     if (i < 0 || i >= H) continue;
+    const float py = (float)i + 0.5f;
     for (int64_t dx = -window; dx <= window; dx += stride) {
       const int64_t j = jc + dx;
       if (j < 0 || j >= W) continue;
-      const int64_t g = (v * H + i) * W + j;
-      const float* gp = GR + g * C;
-      bool nz = false;
-      for (int ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
-      if (!nz) continue;
-      const int32_t* pi = I + g * K;
-      const float* pd = D + g * K;
-      const float* pr = Rh + g * K;
-      int nvalid = 0;
-      while (nvalid < K && pi[nvalid] >= 0) ++nvalid;
-      const float d0 = nvalid > 0 ? pd[0] : INFINITY;
-      bool k_visible = false;
-      for (int e = 0; e < nvalid; ++e)
-        if (pi[e] == k && pd[e] <= d0 + merge) k_visible = true;
-      const float px = (float)j + 0.5f, py = (float)i + 0.5f;
-      const float zp = plane_depth(PL + item * 3, px, py, z, sqrtf((px - u) * (px - u) + (py - vv) * (py - vv)), f);
-      float num[CMAX], den = 0.f;
-#pragma unroll
-      for (int ch = 0; ch < CMAX; ++ch) num[ch] = 0.f;
+      const int64_t p = v * HW + i * W + j;
+      const float* r = REC + p * RS;
+      if (r[0] == 0.f) continue;
+      const float px = (float)j + 0.5f;
+      const int32_t* pi = I + p * K;
+      const float* pd = r + 6 + C;
+      const float* pr = pd + K;
+      const float* pg = pr + K;
+      const float d0 = r[1];
+      int ek = -1;  // position of k in the cache
+      for (int e = 0; e < K && pi[e] >= 0; ++e)
+        if (pi[e] == k) {
+          ek = e;
+          break;
+        }
+      const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
+      float zp = 0.f, den, gn;
       int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
       if (k_visible) {
         kase = 2;
-        float front = INFINITY;
-        for (int e = 0; e < nvalid; ++e)
-          if (pi[e] != k) {
-            front = pd[e];
-            break;
+        if (ek > 0) {  // the front stays: the visible set loses k only
+          const float prk = pr[ek];
+          den = r[2] - prk;
+          gn = r[3] - prk * pg[ek];
+          if (!(den > 0.f)) den = 0.f;
+        } else {  // k was the front: the next entry is the new front, may reveal others
+          den = 0.f;
+          gn = 0.f;
+          if (K > 1 && pi[1] >= 0) {
+            const float lim = pd[1] + merge;
+            for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+              den += pr[e];
+              gn += pr[e] * pg[e];
+            }
           }
-        for (int e = 0; e < nvalid; ++e) {
-          if (pi[e] == k || !(pd[e] <= front + merge)) continue;
-          den += pr[e];
-          const float* a = A + (v * N + pi[e]) * C;
-#pragma unroll
-          for (int ch = 0; ch < CMAX; ++ch)
-            if (ch < C) num[ch] += pr[e] * a[ch];
         }
       } else {
-        kase = (nvalid == 0 || zp <= d0 + merge) ? 0 : 1;
-        const float zf = kase == 0 ? ((d0 < zp) ? d0 : zp) : d0;  // std::min(zp, d0)
+        // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
+        const float iz = pl[0] * px + pl[1] * py + pl[2];
+        zp = iz > 0.f ? 1.f / iz : z;
+        const float d2 = (px - u) * (px - u) + (py - vv) * (py - vv);
+        const float dz = zp - z;
+        if (dz * dz > slope * slope * d2) {
+          const float dmax = slope * sqrtf(d2);
+          const float lo = z - dmax, hi = z + dmax;
+          zp = (zp < lo) ? lo : zp;  // std::max(zp, lo)
+          zp = (hi < zp) ? hi : zp;  // std::min(zp, hi)
+        }
+        const bool empty = pi[0] < 0;
+        kase = (empty || zp <= d0 + merge) ? 0 : 1;
+        float gw = 0.f;
+        for (int ch = 0; ch < C; ++ch) gw += r[6 + ch] * wk[ch];
         den = nk;
-#pragma unroll
-        for (int ch = 0; ch < CMAX; ++ch)
-          if (ch < C) num[ch] = nk * wk[ch];
-        for (int e = 0; e < nvalid; ++e) {
-          if (pi[e] == k || !(pd[e] <= zf + merge)) continue;
-          den += pr[e];
-          const float* a = A + (v * N + pi[e]) * C;
-#pragma unroll
-          for (int ch = 0; ch < CMAX; ++ch)
-            if (ch < C) num[ch] += pr[e] * a[ch];
-        }
-      }
-      const float* ip = IMG + g * C;
-      float gd = 0.f;
-#pragma unroll
-      for (int ch = 0; ch < CMAX; ++ch) {
-        if (ch < C) {
-          const float inew = den > 0.f ? num[ch] / den : BG[ch];
-          gd += gp[ch] * (inew - ip[ch]);
-        }
-      }
-      if (mode == 0) {  // dss: linearised step between the two visibility states
-        if (!(gd < 0.f)) continue;  // Eq. filteredG
-        if (kase == 2) {
-          const float ddx = px - u, ddy = py - vv;
-          const float sd = sqrtf(ddx * ddx + ddy * ddy);
-          if (sd < 1e-6f) continue;
-          const float ux = ddx / sd, uy = ddy / sd;
-          const float qu = quad(s[2], s[3], s[4], ux, uy);
-          const float r = sqrtf(2.f * cutoff / ((qu < 1e-20f) ? 1e-20f : qu));  // std::max(qu, 1e-20f)
-          const float rs = r - sd;
-          const float steps[2] = {-((rs < 0.f) ? 0.f : rs), r + sd};  // -(std::max(r - sd, 0.f))
-#pragma unroll
-          for (int m = 0; m < 2; ++m) {
-            const float mx = steps[m] * ux * z / f, my = steps[m] * uy * z / f;
-            const float coef = gd / (mx * mx + my * my + eps);
-            acc[0] += coef * mx;
-            acc[1] += coef * my;
+        gn = nk * gw;
+        if (kase == 1 || zp >= d0) {  // merges with the current visible set
+          den += r[2];
+          gn += r[3];
+        } else if (!empty) {  // k becomes the front: entries beyond zp + T drop out
+          const float lim = zp + merge;
+          for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+            den += pr[e];
+            gn += pr[e] * pg[e];
           }
-        } else {
-          const float zt = kase == 1 ? d0 : zp;
-          const float mx = (px - cx) * zt / f - X, my = (py - cy) * zt / f - Y, mz = zt - zp;
-          const float coef = gd / (mx * mx + my * my + mz * mz + eps);
-          acc[0] += coef * mx;
-          acc[1] += coef * my;
-          acc[2] += coef * mz;
         }
-      } else {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
-        const float ddx = px - u, ddy = py - vv;
+      }
+      const float gd = (den > 0.f ? gn / den : r[5]) - r[4];
+      const float ddx = px - u, ddy = py - vv;
+      if (mode == 1) {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
         const float q = quad(s[2], s[3], s[4], ddx, ddy);
         const float h = expf(-0.5f * q);
         const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
@@ -384,6 +418,33 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
         acc[0] += c * (f / z) * gu;
         acc[1] += c * (f / z) * gv;
         acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
+        continue;
+      }
+      if (!(gd < 0.f)) continue;  // Eq. filteredG
+      if (kase == 2) {            // (c): step out of the splat along the ray from its centre, both ways
+        const float sd = sqrtf(ddx * ddx + ddy * ddy);
+        if (sd < 1e-6f) continue;
+        const float inv_sd = 1.f / sd;
+        const float ux = ddx * inv_sd, uy = ddy * inv_sd;
+        const float qu = quad(s[2], s[3], s[4], ux, uy);
+        const float rr = sqrtf(2.f * cutoff / ((qu < 1e-20f) ? 1e-20f : qu));  // std::max(qu, 1e-20f)
+        const float rs = rr - sd;
+        const float steps[2] = {-((rs < 0.f) ? 0.f : rs), rr + sd};  // -(std::max(rr - sd, 0.f))
+#pragma unroll
+        for (int m = 0; m < 2; ++m) {
+          const float mx = steps[m] * ux * z_f, my = steps[m] * uy * z_f;
+          const float coef = gd / (mx * mx + my * my + eps);
+          acc[0] += coef * mx;
+          acc[1] += coef * my;
+        }
+      } else {
+        const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
+        const float zt_f = zt * inv_f;
+        const float mx = (px - cx) * zt_f - X, my = (py - cy) * zt_f - Y, mz = zt - zp;
+        const float coef = gd / (mx * mx + my * my + mz * mz + eps);
+        acc[0] += coef * mx;
+        acc[1] += coef * my;
+        acc[2] += coef * mz;
       }
     }
   }
@@ -468,20 +529,18 @@ cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs,
                                         const float* grad, const float* R, const float* focal,
                                         const float* principal, const float* background, const float* planes,
                                         int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
-                                        float cutoff,
-                                        float merge, float eps, int mode, double* partial, cudaStream_t stream) {
+                                        float cutoff, float merge, float eps, int mode, float* records,
+                                        double* partial, cudaStream_t stream) {
   if (V * N == 0) return cudaSuccess;
   if (K < 1 || K > kMaxK || C < 1 || C > kMaxC || stride < 1 || window < 0) return cudaErrorInvalidValue;
-  const unsigned int blocks = blocks_for(V * N, 128);
-  // Channel arrays sized at compile time so they stay in registers for the usual C <= 4.
-  if (C <= 4)
-    DSS_LAUNCH(visibility_kernel<4>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R, focal,
-                                                          principal, background, planes, V, N, H, W, K, C,
-                                                          window, stride, cutoff, merge, eps, mode, partial);
-  else
-    DSS_LAUNCH(visibility_kernel<kMaxC>, blocks, 128, stream)(packed, attrs, idx, depth, rho, images, grad, R,
-                                                              focal, principal, background, planes, V, N, H, W,
-                                                              K, C, window, stride, cutoff, merge, eps, mode, partial);
+  const int64_t pixels = V * (int64_t)H * W;
+  if (pixels > 0) {
+    DSS_LAUNCH(vis_records_kernel, blocks_for(pixels, kThreads1D), kThreads1D, stream)(
+        attrs, idx, depth, rho, images, grad, background, V, N, H, W, K, C, merge, records);
+  }
+  DSS_LAUNCH(visibility_kernel, blocks_for(V * N, 128), 128, stream)(packed, attrs, idx, records, R, focal,
+                                                                       principal, planes, V, N, H, W, K, C, window,
+                                                                       stride, cutoff, merge, eps, mode, partial);
   return cudaGetLastError();
 }
 

@@ -41,13 +41,16 @@ cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, in
                                    int32_t* idx, float* depth, float* rho, float* images, bool* mask,
                                    cudaStream_t stream);
 
-// Visibility gradient, one thread per (view, point): partial (V, N, 3) f64 receives R_v^T acc_v,
-// the world-space contribution of view v (zero where the splat is not valid). mode 0: dss, 1: rbf.
+// Visibility gradient: one thread per (view, pixel) fills records (V * H * W * (6 + C + 3K) f32,
+// workspace: the pixel records of dss_cpu.cpp), then one thread per (view, point): partial
+// (V, N, 3) f64 receives R_v^T acc_v, the world-space contribution of view v (zero where the
+// splat is not valid). mode 0: dss, 1: rbf.
 cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
                               const float* rho, const float* images, const float* grad, const float* R,
                               const float* focal, const float* principal, const float* background,
-                              const float* planes, int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride, float cutoff,
-                              float merge, float eps, int mode, double* partial, cudaStream_t stream);
+                              const float* planes, int64_t V, int64_t N, int H, int W, int K, int C, int window,
+                              int stride, float cutoff, float merge, float eps, int mode, float* records,
+                              double* partial, cudaStream_t stream);
 
 // out (N, 3) f32 = sum over views v = 0..V-1 in order (double) of partial[v, k], skipping views
 // where splat (v, k) is not valid: the CPU kernel's summation order, hence deterministic.

@@ -144,13 +144,15 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 
   const cudaStream_t stream = current_stream();
   auto partial = torch::empty({V, N, 3}, torch::TensorOptions().dtype(torch::kFloat64).device(dev));
+  auto records = torch::empty({V * H * W * (6 + C + 3 * K)}, torch::TensorOptions().dtype(torch::kFloat32).device(dev));
   auto out = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32).device(dev));
   check_launch(dss_cuda::launch_visibility(
                    packed.data_ptr<float>(), attrs.data_ptr<float>(), idx.data_ptr<int32_t>(),
                    depth.data_ptr<float>(), rho.data_ptr<float>(), images.data_ptr<float>(), grad.data_ptr<float>(),
                    R.data_ptr<float>(), focal.data_ptr<float>(), principal.data_ptr<float>(),
                    background.data_ptr<float>(), planes.data_ptr<float>(), V, N, (int)H, (int)W, (int)K, (int)C, (int)window, (int)stride,
-                   (float)cutoff_d, (float)merge_d, (float)eps_d, (int)mode, partial.data_ptr<double>(), stream),
+                   (float)cutoff_d, (float)merge_d, (float)eps_d, (int)mode, records.data_ptr<float>(),
+                   partial.data_ptr<double>(), stream),
                "visibility");
   check_launch(dss_cuda::launch_reduce_views(packed.data_ptr<float>(), partial.data_ptr<double>(), V, N,
                                              out.data_ptr<float>(), stream),
