@@ -112,7 +112,7 @@ def run(argv=None) -> dict:
     ap.add_argument("--skip", type=int, default=2, help="warm-up calls of each build left out of the medians")
     ap.add_argument("--window", type=int, default=None,
                     help="visibility_backward only: call it with this window half size (px) instead of the "
-                         "captured step's (4)")
+                         "captured step's")
     ap.add_argument("--out", default=None, help="JSON file for the result")
     args = ap.parse_args(argv)
     if args.reps <= args.skip:

@@ -410,6 +410,16 @@ struct VisState {
   float gd, zp, d0;
 };
 
+// Adds rho and rho g.w of the cache entries e0, e0 + 1, ... at pixel p to (den, gn) while they
+// hold a point within depth lim: the visible set in front of lim (entries are depth-sorted).
+template <class Rec>
+inline void add_entries_within(const Rec& R, int64_t K, int64_t p, int e0, float lim, float& den, float& gn) {
+  for (int e = e0; e < K && R.idx(e, p) >= 0 && R.dep(e, p) <= lim; ++e) {
+    den += R.rho(e, p);
+    gn += R.rho(e, p) * R.gw(e, p);
+  }
+}
+
 template <int64_t KC, int64_t CC, class Rec>
 inline VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
                           int64_t p, float px, float py) {
@@ -432,13 +442,7 @@ inline VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint
     } else {  // k was the front: the next entry is the new front, may reveal others
       den = 0.f;
       gn = 0.f;
-      if (K > 1 && R.idx(1, p) >= 0) {
-        const float lim = R.dep(1, p) + merge;
-        for (int e = 1; e < K && R.idx(e, p) >= 0 && R.dep(e, p) <= lim; ++e) {
-          den += R.rho(e, p);
-          gn += R.rho(e, p) * R.gw(e, p);
-        }
-      }
+      if (K > 1 && R.idx(1, p) >= 0) add_entries_within(R, K, p, 1, R.dep(1, p) + merge, den, gn);
     }
   } else {
     // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
@@ -460,11 +464,7 @@ inline VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint
       den += R.den(p);
       gn += R.gn(p);
     } else if (!empty) {  // k becomes the front: entries beyond zp + T drop out
-      const float lim = zp + merge;
-      for (int e = 0; e < K && R.idx(e, p) >= 0 && R.dep(e, p) <= lim; ++e) {
-        den += R.rho(e, p);
-        gn += R.rho(e, p) * R.gw(e, p);
-      }
+      add_entries_within(R, K, p, 0, zp + merge, den, gn);
     }
   }
   const float gd = (den > 0.f ? gn / den : R.gb(p)) - R.gi(p);
@@ -584,6 +584,18 @@ struct VisLanes {
                     : _mm256_loadu_si256((const __m256i*)(plane + a.p0));
   }
 
+  // add_entries_within in lanes: the scalar loop's stop becomes a mask that stays off once off.
+  DSS_AVX2 void add_entries_within(const __m256i* ie, const __m256* de, const __m256* re, const __m256* ge,
+                                   int64_t e0, __m256 alive, __m256 lim, __m256& den, __m256& gn) const {
+    const __m256i minus1 = _mm256_set1_epi32(-1);
+    for (int64_t e = e0; e < K; ++e) {
+      alive = _mm256_and_ps(alive, _mm256_and_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[e], minus1)),
+                                                 _mm256_cmp_ps(de[e], lim, _CMP_LE_OQ)));
+      den = _mm256_blendv_ps(den, _mm256_add_ps(den, re[e]), alive);
+      gn = _mm256_blendv_ps(gn, _mm256_add_ps(gn, _mm256_mul_ps(re[e], ge[e])), alive);
+    }
+  }
+
   // The 8 evaluations of one chunk; (px, py) the pixel centres.
   DSS_AVX2 void eval(const VisAddr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.f);
@@ -617,16 +629,8 @@ struct VisLanes {
       const __m256 gn_a = _mm256_sub_ps(r2, _mm256_mul_ps(prk, pgk));
       den_a = _mm256_blendv_ps(zero, den_a, _mm256_cmp_ps(den_a, zero, _CMP_GT_OQ));
       __m256 den_b = zero, gn_b = zero;
-      if (K > 1) {
-        const __m256 lim = _mm256_add_ps(de[1], vmerge);
-        __m256 alive = _mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[1], minus1));
-        for (int64_t e = 1; e < K; ++e) {
-          alive = _mm256_and_ps(alive, _mm256_and_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[e], minus1)),
-                                                     _mm256_cmp_ps(de[e], lim, _CMP_LE_OQ)));
-          den_b = _mm256_blendv_ps(den_b, _mm256_add_ps(den_b, re[e]), alive);
-          gn_b = _mm256_blendv_ps(gn_b, _mm256_add_ps(gn_b, _mm256_mul_ps(re[e], ge[e])), alive);
-        }
-      }
+      if (K > 1)
+        add_entries_within(ie, de, re, ge, 1, _mm256_castsi256_ps(minus1), _mm256_add_ps(de[1], vmerge), den_b, gn_b);
       den = _mm256_blendv_ps(den_a, den_b, ek0);
       gn = _mm256_blendv_ps(gn_a, gn_b, ek0);
     }
@@ -651,15 +655,8 @@ struct VisLanes {
       den_n = _mm256_blendv_ps(den_n, _mm256_add_ps(den_n, r1), mall);
       gn_n = _mm256_blendv_ps(gn_n, _mm256_add_ps(gn_n, r2), mall);
       __m256 alive = _mm256_andnot_ps(_mm256_or_ps(mall, empty), _mm256_castsi256_ps(minus1));
-      if (_mm256_movemask_ps(alive)) {  // k becomes the front: entries beyond zp + T drop out
-        const __m256 lim = _mm256_add_ps(zq, vmerge);
-        for (int64_t e = 0; e < K; ++e) {
-          alive = _mm256_and_ps(alive, _mm256_and_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(ie[e], minus1)),
-                                                     _mm256_cmp_ps(de[e], lim, _CMP_LE_OQ)));
-          den_n = _mm256_blendv_ps(den_n, _mm256_add_ps(den_n, re[e]), alive);
-          gn_n = _mm256_blendv_ps(gn_n, _mm256_add_ps(gn_n, _mm256_mul_ps(re[e], ge[e])), alive);
-        }
-      }
+      if (_mm256_movemask_ps(alive))  // k becomes the front: entries beyond zp + T drop out
+        add_entries_within(ie, de, re, ge, 0, alive, _mm256_add_ps(zq, vmerge), den_n, gn_n);
       den = _mm256_blendv_ps(den_n, den, kvis);
       gn = _mm256_blendv_ps(gn_n, gn, kvis);
       zp = zq;
