@@ -260,7 +260,7 @@ __global__ void vis_records_kernel(const float* __restrict__ A, const int32_t* _
   const int64_t HW = (int64_t)H * W;
   if (g >= V * HW) return;
   const int64_t v = g / HW;
-  const int RS = 6 + C + 3 * K;
+  const int64_t RS = vis_record_floats(K, C);
   float* r = REC + g * RS;
   const float* gp = GR + g * C;
   bool nz = false;
@@ -323,7 +323,7 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
     out[2] = 0.0;
     return;
   }
-  const int RS = 6 + C + 3 * K;
+  const int64_t RS = vis_record_floats(K, C);
   const float f = F[v], cx = PP[v * 2], cy = PP[v * 2 + 1], inv_f = 1.f / f;
   const float u = s[0], vv = s[1], z = s[6], nk = s[5];
   const float z_f = z * inv_f;  // camera units per pixel at the point's depth

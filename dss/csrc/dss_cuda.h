@@ -41,8 +41,15 @@ cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, in
                                    int32_t* idx, float* depth, float* rho, float* images, bool* mask,
                                    cudaStream_t stream);
 
-// Visibility gradient: one thread per (view, pixel) fills records (V * H * W * (6 + C + 3K) f32,
-// workspace: the pixel records of dss_cpu.cpp), then one thread per (view, point): partial
+// Floats in one pixel record of the visibility gradient (the layout of dss_cpu.cpp's records);
+// used by the kernels (device) and by the callers that allocate the workspace (host).
+#ifdef __CUDACC__
+__host__ __device__
+#endif
+constexpr int64_t vis_record_floats(int K, int C) { return 6 + C + 3 * (int64_t)K; }
+
+// Visibility gradient: one thread per (view, pixel) fills records (V * H * W *
+// vis_record_floats(K, C) f32, workspace: the pixel records of dss_cpu.cpp), then one thread per (view, point): partial
 // (V, N, 3) f64 receives R_v^T acc_v, the world-space contribution of view v (zero where the
 // splat is not valid). mode 0: dss, 1: rbf.
 cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,

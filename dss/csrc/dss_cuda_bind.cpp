@@ -144,7 +144,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 
   const cudaStream_t stream = current_stream();
   auto partial = torch::empty({V, N, 3}, torch::TensorOptions().dtype(torch::kFloat64).device(dev));
-  auto records = torch::empty({V * H * W * (6 + C + 3 * K)}, torch::TensorOptions().dtype(torch::kFloat32).device(dev));
+  auto records = torch::empty({V * H * W * dss_cuda::vis_record_floats((int)K, (int)C)},
+                              torch::TensorOptions().dtype(torch::kFloat32).device(dev));
   auto out = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32).device(dev));
   check_launch(dss_cuda::launch_visibility(
                    packed.data_ptr<float>(), attrs.data_ptr<float>(), idx.data_ptr<int32_t>(),

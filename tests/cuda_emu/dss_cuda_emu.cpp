@@ -26,7 +26,7 @@ int emu_visibility(const float* packed, const float* attrs, const int32_t* idx, 
                    const float* images, const float* grad, const float* R, const float* focal, const float* principal,
                    const float* background, const float* planes, int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
                    float cutoff, float merge, float eps, int mode, double* partial) {
-  std::vector<float> records((size_t)(V * H * W * (6 + C + 3 * K)));
+  std::vector<float> records((size_t)(V * H * W * dss_cuda::vis_record_floats(K, C)));
   return dss_cuda::launch_visibility(packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background,
                                      planes, V, N, H, W, K, C, window, stride, cutoff, merge, eps, mode,
                                      records.data(), partial, nullptr);
