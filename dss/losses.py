@@ -35,15 +35,19 @@ class _FusedSmape(torch.autograd.Function):
     def forward(ctx, pred, target, eps, scale):
         from . import _ext
 
-        total, grad = _ext.loaded_cpu().smape_sum(pred.detach(), target.detach(), float(eps), pred.requires_grad)
+        # the derivative comes back already times the mean's scale: no extra pass over it when
+        # the loss is backpropagated alone (go == 1)
+        total, grad = _ext.loaded_cpu().smape_sum(pred.detach(), target.detach(), float(eps), float(scale),
+                                                  pred.requires_grad)
         ctx.save_for_backward(grad)
-        ctx.scale = scale
         return (total * scale).to(pred.dtype)
 
     @staticmethod
     def backward(ctx, go):
         (grad,) = ctx.saved_tensors
-        return grad * (go * ctx.scale), None, None, None
+        if go.numel() == 1 and float(go) == 1.0:
+            return grad, None, None, None
+        return grad * go, None, None, None
 
 
 def _fused_smape_ok(pred: torch.Tensor, target: torch.Tensor, mask, reduction: str) -> bool:

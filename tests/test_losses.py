@@ -120,4 +120,8 @@ def test_fused_smape_equals_the_torch_expression(channel_reduction, cpp_backend)
     torch.testing.assert_close(fused, ref, rtol=1e-6, atol=1e-7)
     torch.testing.assert_close(p1.grad, p2.grad, rtol=1e-5, atol=1e-6)
     assert p1.grad.abs().max() > 0 and fused.grad_fn is not None
+    # the kernel's derivative comes pre-scaled to the mean; an outer factor still reaches it
+    p3 = pred.clone().requires_grad_()
+    (2.5 * smape_loss(p3, target, channel_reduction=channel_reduction)).backward()
+    torch.testing.assert_close(p3.grad, 2.5 * p2.grad, rtol=1e-5, atol=1e-6)
     assert not _fused_smape_ok(pred, target, torch.ones(2, 9, 11), "mean")  # masks take the torch path

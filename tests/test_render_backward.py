@@ -289,6 +289,31 @@ def test_spatial_sort_changes_nothing_but_speed(backend, request):
     assert res[True][1].abs().max() > 0 and (res[True][4] >= 0).any()
 
 
+def test_cpp_morton_order_equals_the_torch_one(cpp_backend):
+    """The C++ Z-order permutation (dss_cpu.cpp morton_order, taken by spatial_order on CPU float32)
+    equals morton_codes + stable argsort exactly: flat and elongated boxes (the per-axis scale),
+    exact duplicates (equal codes keep their index order), a single point, and points on the box's
+    far faces (the clamp to 1023)."""
+    from dss import _ext
+    from dss.ordering import morton_codes, spatial_order
+
+    mod = _ext.load_cpu()
+    g = torch.Generator().manual_seed(3)
+    clouds = [torch.randn(5000, 3, generator=g) * torch.tensor([1.0, 40.0, 1e-4]),
+              torch.rand(3000, 3, generator=g).round(decimals=1),  # many equal codes
+              torch.zeros(1, 3), torch.tensor([[0.0, 0, 0], [1, 1, 1], [1, 0, 1], [0.5, 0.5, 0.5]])]
+    # on the grid lines (x = i ext / 1023): the cell an axis value falls in depends on the rounding
+    # of 1023 / ext, which torch evaluates as ext.reciprocal() * 1023
+    x = torch.arange(1024, dtype=torch.float32) * (1.7 / 1023)
+    clouds.append(torch.stack([x, x.flip(0), x.roll(7)], 1))
+    for pts in clouds:
+        pts = torch.cat([pts, pts.flip(0)])
+        ref = torch.argsort(morton_codes(pts), stable=True)
+        assert torch.equal(mod.morton_order(pts), ref)
+        assert torch.equal(spatial_order(pts), ref)
+    assert len(set(morton_codes(clouds[1]).tolist())) < 3000  # the ties were there
+
+
 def test_kernel_uses_every_thread_and_gives_the_same_bits(cpp_backend):
     """The C++ kernel is built with OpenMP on Linux (without it at::parallel_for silently runs on
     one thread), and its three kernels give the same bits on 1 and 2 threads for the same inputs:

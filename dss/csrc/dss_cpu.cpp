@@ -1442,17 +1442,49 @@ std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::
 }
 
 // SMAPE (paper Eq. smape) in one pass: sum over all elements of |x - y| / (|x| + |y| + eps), and
-// when asked its derivative with respect to x, sign(x - y) / s - |x - y| sign(x) / s^2 with
-// s = |x| + |y| + eps (sign(0) = 0, as torch's abs backward). dss/losses.py scales both to the
-// loss's mean; the torch expression there is the reference. Partial sums per block of 2^16
-// elements in double, added in block order: the same bits at any thread count.
-std::vector<torch::Tensor> smape_sum(torch::Tensor pred, torch::Tensor target, double eps_d, bool with_grad) {
+// when asked its derivative with respect to x times grad_scale, (sign(x - y) / s - |x - y|
+// sign(x) / s^2) grad_scale with s = |x| + |y| + eps (sign(0) = 0, as torch's abs backward).
+// dss/losses.py scales both to the loss's mean; the torch expression there is the reference.
+// Runs of 8 elements are computed side by side (the compiler vectorises them) into 8 double
+// partial sums per block of 2^16 elements; blocks are added in block order, so the sum has the
+// same bits at any thread count.
+namespace {
+template <bool kGrad>
+double smape_block(const float* X, const float* Y, float* G, int64_t n, float eps, float gscale) {
+  double acc[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  auto one = [&](int64_t e, float& r) {
+    const float x = X[e], y = Y[e];
+    const float d = x - y, ad = std::fabs(d);
+    const float s = std::fabs(x) + std::fabs(y) + eps;
+    r = ad / s;
+    if constexpr (kGrad) {
+      const float sd = (float)((d > 0.f) - (d < 0.f)), sx = (float)((x > 0.f) - (x < 0.f));
+      G[e] = (sd / s - ad * sx / (s * s)) * gscale;
+    }
+  };
+  int64_t e = 0;
+  for (; e + 8 <= n; e += 8) {
+    float r[8];
+    for (int l = 0; l < 8; ++l) one(e + l, r[l]);
+    for (int l = 0; l < 8; ++l) acc[l] += r[l];
+  }
+  for (; e < n; ++e) {
+    float r;
+    one(e, r);
+    acc[0] += r;
+  }
+  return ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+}
+}  // namespace
+
+std::vector<torch::Tensor> smape_sum(torch::Tensor pred, torch::Tensor target, double eps_d, double grad_scale,
+                                     bool with_grad) {
   TORCH_CHECK(pred.sizes() == target.sizes(), "pred and target must have the same shape");
   pred = pred.contiguous().to(torch::kFloat32);
   target = target.contiguous().to(torch::kFloat32);
   const int64_t n = pred.numel();
-  const float eps = (float)eps_d;
-  auto grad = with_grad ? torch::empty_like(pred) : torch::empty({0}, pred.options());
+  const float eps = (float)eps_d, gscale = (float)grad_scale;
+  auto grad = with_grad ? pooled_empty(pred.sizes(), torch::kFloat32) : torch::empty({0}, pred.options());
   const float* X = pred.data_ptr<float>();
   const float* Y = target.data_ptr<float>();
   float* Gd = with_grad ? grad.data_ptr<float>() : nullptr;
@@ -1461,24 +1493,80 @@ std::vector<torch::Tensor> smape_sum(torch::Tensor pred, torch::Tensor target, d
   std::vector<double> part((size_t)nblocks, 0.0);
   at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
     for (int64_t b = b0; b < b1; ++b) {
-      const int64_t e0 = b * kBlock, e1 = std::min(n, e0 + kBlock);
-      double acc = 0.0;
-      for (int64_t e = e0; e < e1; ++e) {
-        const float x = X[e], y = Y[e];
-        const float d = x - y, ad = std::fabs(d);
-        const float s = std::fabs(x) + std::fabs(y) + eps;
-        acc += ad / s;
-        if (Gd) {
-          const float sd = (d > 0.f) - (d < 0.f), sx = (x > 0.f) - (x < 0.f);
-          Gd[e] = sd / s - ad * sx / (s * s);
-        }
-      }
-      part[b] = acc;
+      const int64_t e0 = b * kBlock, m = std::min(n, e0 + kBlock) - e0;
+      part[b] = Gd ? smape_block<true>(X + e0, Y + e0, Gd + e0, m, eps, gscale)
+                   : smape_block<false>(X + e0, Y + e0, nullptr, m, eps, gscale);
     }
   });
   double total = 0.0;
   for (double p : part) total += p;
   return {torch::full({}, total, torch::TensorOptions().dtype(torch::kFloat64)), grad};
+}
+
+// Z-order permutation of N points (dss/ordering.py spatial_order is the reference): codes on a
+// 1024^3 grid over the bounding box with the same float32 operations as morton_codes, sorted by
+// a stable LSD radix sort (three 10-bit digits), so equal codes keep their index order as in
+// torch.argsort(stable=True). points (N, 3) float32 -> (N,) int64.
+namespace {
+inline uint32_t spread3(uint32_t x) {
+  x = (x | (x << 16)) & 0x030000FFu;
+  x = (x | (x << 8)) & 0x0300F00Fu;
+  x = (x | (x << 4)) & 0x030C30C3u;
+  return (x | (x << 2)) & 0x09249249u;
+}
+}  // namespace
+
+torch::Tensor morton_order(torch::Tensor points) {
+  TORCH_CHECK(points.dim() == 2 && points.size(1) == 3 && points.scalar_type() == torch::kFloat32,
+              "points must be (N, 3) float32");
+  points = points.contiguous();
+  const int64_t N = points.size(0);
+  auto order = torch::empty({N}, torch::TensorOptions().dtype(torch::kInt64));
+  if (N == 0) return order;
+  const float* p = points.data_ptr<float>();
+  float lo[3], hi[3];
+  for (int a = 0; a < 3; ++a) lo[a] = hi[a] = p[a];
+  for (int64_t n = 1; n < N; ++n)
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = std::min(lo[a], p[n * 3 + a]);
+      hi[a] = std::max(hi[a], p[n * 3 + a]);
+    }
+  float scale[3];
+  // torch evaluates 1023.0 / ext as ext.reciprocal() * 1023.0 (two roundings)
+  for (int a = 0; a < 3; ++a) scale[a] = (1.f / std::max(hi[a] - lo[a], 1e-30f)) * 1023.f;
+  std::vector<uint32_t> code((size_t)N), code2((size_t)N);
+  std::vector<int64_t> idx2((size_t)N);
+  int64_t* idx = order.data_ptr<int64_t>();
+  for (int64_t n = 0; n < N; ++n) {
+    uint32_t c = 0;
+    for (int a = 0; a < 3; ++a) {
+      // float -> int64 truncation, then the clamp to the grid, as the torch expression
+      const int64_t q = std::min<int64_t>(1023, std::max<int64_t>(0, (int64_t)((p[n * 3 + a] - lo[a]) * scale[a])));
+      c |= spread3((uint32_t)q) << a;
+    }
+    code[n] = c;
+    idx[n] = n;
+  }
+  int64_t* src_i = idx;
+  int64_t* dst_i = idx2.data();
+  uint32_t* src_c = code.data();
+  uint32_t* dst_c = code2.data();
+  std::vector<int64_t> count(1025);
+  for (int shift = 0; shift < 30; shift += 10) {
+    std::fill(count.begin(), count.end(), 0);
+    for (int64_t n = 0; n < N; ++n) count[((src_c[n] >> shift) & 1023u) + 1]++;
+    for (int d = 0; d < 1024; ++d) count[d + 1] += count[d];
+    for (int64_t n = 0; n < N; ++n) {
+      const int64_t at = count[(src_c[n] >> shift) & 1023u]++;
+      dst_c[at] = src_c[n];
+      dst_i[at] = src_i[n];
+    }
+    std::swap(src_c, dst_c);
+    std::swap(src_i, dst_i);
+  }
+  // three passes: the sorted permutation is in the scratch buffer
+  std::copy(src_i, src_i + N, idx);
+  return order;
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -1489,6 +1577,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 path");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
+  m.def("morton_order", &morton_order, "stable Z-order permutation of (N, 3) float32 points (CPU)");
   m.def("smape_sum", &smape_sum, "SMAPE sum and its derivative in one pass (CPU)");
   m.def("empty_cache", &empty_cache, "free the parked output blocks; returns the bytes released");
   m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CPU)");
