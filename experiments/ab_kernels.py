@@ -102,7 +102,9 @@ def git_source(rev: str) -> str:
 def run(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--kernel", choices=KERNELS, default="visibility_backward")
-    ap.add_argument("--base", required=True, help="git revision whose dss_cpu.cpp is the baseline")
+    ap.add_argument("--base", required=True,
+                    help="git revision whose dss_cpu.cpp is the baseline, or 'scalar': the working tree's own "
+                         "kernel with its AVX2 paths switched off (set_vector_path(False))")
     ap.add_argument("--kind", choices=("position", "normal"), default="position")
     ap.add_argument("--points", type=int, default=20000)
     ap.add_argument("--views", type=int, default=12)
@@ -126,10 +128,13 @@ def run(argv=None) -> dict:
         if args.kernel != "visibility_backward" or args.window < 0:
             raise SystemExit("--window needs --kernel visibility_backward and a window >= 0")
         call_args[VIS_WINDOW_ARG] = args.window
-    sources = {"base": git_source(args.base), "work": (REPO / SOURCE).read_text()}
+    work_text = (REPO / SOURCE).read_text()
+    sources = {"base": work_text if args.base == "scalar" else git_source(args.base), "work": work_text}
     times: dict = {k: [] for k in sources}
     with tempfile.TemporaryDirectory() as tmp:
         mods = {k: build(f"dss_ab_{k}", text, Path(tmp)) for k, text in sources.items()}
+        if args.base == "scalar":
+            mods["base"].set_vector_path(False)
         for _ in range(args.reps):
             for k, mod in mods.items():
                 t0 = time.perf_counter()

@@ -466,9 +466,9 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
         }
       }
     }
-    // Write out the cache and blend the visible entries (Eq. sumI). Most pixels of most tiles
-    // are empty (91% at 20K points), so a tile row is first written as the empty pattern in
-    // whole-row copies, then the pixels with entries are overwritten.
+    // Write out the cache and blend the visible entries (Eq. sumI). An object covers a small
+    // part of most views, so a tile row is first written as empty pixels in whole-row fills,
+    // then the pixels with entries are overwritten.
     const int nw = tj1 - tj0 + 1;
     // (whole tile rows with (K, C) compiled in are fixed-size copies the compiler inlines)
     auto copy_row = [&](auto NW) {
