@@ -15,7 +15,6 @@
 #include <atomic>
 #include <cmath>
 #include <cstdlib>
-#include <cstring>
 #include <limits>
 #include <map>
 #include <mutex>
@@ -174,11 +173,9 @@ void dynamic_for(int64_t n, int64_t chunk, const F& fn) {
   });
 }
 
-
 // Inserts fragment (k, zk, rho) into pixel p's top-K list (sorted by (depth, index), c entries);
 // the caller has checked that it belongs there (the list is not full, or k sorts before its
 // last entry). Returns the new count.
-template <int64_t KC>
 inline int insert_fragment(int32_t* pi, float* pd, float* pr, int c, int64_t K, int32_t k, float zk, float r) {
   const int n = c == K ? (int)K : c + 1;
   int pos = c == K ? (int)K - 1 : c;
@@ -277,7 +274,7 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
         int32_t* pi = li + p * 8;
         float* pd = ld + p * 8;
         float* pr = lr + p * 8;
-        const int c = insert_fragment<KC>(pi, pd, pr, cnt[p], K, k, zk, f.norm * std::exp(-0.5f * qrow[jj]));
+        const int c = insert_fragment(pi, pd, pr, cnt[p], K, k, zk, f.norm * std::exp(-0.5f * qrow[jj]));
         cnt[p] = c;
         if (c == K) {
           rowopen[i - ti0] -= gopen[p] != 0;
@@ -462,7 +459,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
           float* pr = lr + p * 8;
           // a full list takes the fragment only if it sorts before the last entry
           if (c == K && !(zk < pd[K - 1] || (zk == pd[K - 1] && k < pi[K - 1]))) continue;
-          cnt[p] = insert_fragment<KC>(pi, pd, pr, c, K, k, zk, f.norm * std::exp(-0.5f * q));
+          cnt[p] = insert_fragment(pi, pd, pr, c, K, k, zk, f.norm * std::exp(-0.5f * q));
         }
       }
     }
@@ -470,7 +467,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     // part of most views, so a tile row is first written as empty pixels in whole-row fills,
     // then the pixels with entries are overwritten.
     const int nw = tj1 - tj0 + 1;
-    // (whole tile rows with (K, C) compiled in are fixed-size copies the compiler inlines)
+    // (whole tile rows with K compiled in are fixed-size fills the compiler vectorises)
     auto copy_row = [&](auto NW) {
       constexpr int64_t NWC = decltype(NW)::value;
       const int64_t n = NWC > 0 && KC > 0 ? NWC : nw;
