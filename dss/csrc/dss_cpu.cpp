@@ -15,6 +15,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <limits>
 #include <map>
 #include <mutex>
@@ -190,6 +191,22 @@ inline int insert_fragment(int32_t* pi, float* pd, float* pr, int c, int64_t K, 
   pr[pos] = r;
   return n;
 }
+
+#ifdef DSS_HAVE_AVX2
+// Streaming (non-temporal) copy of n bytes from an aligned local buffer: 32-byte stores that
+// bypass the caches where dst is 32-byte aligned, ordinary stores for the rest.
+DSS_AVX2 void stream_bytes(void* dst, const void* src, size_t n) {
+  char* d = static_cast<char*>(dst);
+  const char* s = static_cast<const char*>(src);
+  size_t head = (32 - (reinterpret_cast<uintptr_t>(d) & 31)) & 31;
+  head = std::min(head, n);
+  std::memcpy(d, s, head);
+  size_t k = head;
+  for (; k + 32 <= n; k += 32)
+    _mm256_stream_si256(reinterpret_cast<__m256i*>(d + k), _mm256_loadu_si256(reinterpret_cast<const __m256i*>(s + k)));
+  std::memcpy(d + k, s + k, n - k);
+}
+#endif
 
 #ifdef DSS_HAVE_AVX2
 // Bit l: pixel l of 8 takes the fragment (depth z, index k, quadratic form q): inside the cutoff
@@ -463,57 +480,79 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
         }
       }
     }
-    // Write out the cache and blend the visible entries (Eq. sumI). An object covers a small
-    // part of most views, so a tile row is first written as empty pixels in whole-row fills,
-    // then the pixels with entries are overwritten.
-    const int nw = tj1 - tj0 + 1;
-    // (whole tile rows with K compiled in are fixed-size fills the compiler vectorises)
-    auto copy_row = [&](auto NW) {
+    // Write out the cache and blend the visible entries (Eq. sumI), a tile row at a time: empty
+    // pixels (slots (-1, inf, 0), the background) in whole-row fills, then the pixels with
+    // entries. On the vector path the row is assembled in local buffers and written with
+    // streaming stores (the 47 MB cache is not read back before it leaves the caches, so
+    // writing around them saves reading every line first); elsewhere it is assembled in place.
+    const int nwrt = tj1 - tj0 + 1;
+    alignas(32) int32_t bi[kTile * 8];
+    alignas(32) float bd[kTile * 8], br[kTile * 8], bimg[kTile * 16];
+    // (full tile rows with K compiled in have fixed sizes: the fills and copies inline)
+    auto write_rows = [&](auto NW, auto VEC) {
       constexpr int64_t NWC = decltype(NW)::value;
-      const int64_t n = NWC > 0 && KC > 0 ? NWC : nw;
+      constexpr bool kStream = decltype(VEC)::value;
+      const int nw = NWC > 0 ? (int)NWC : nwrt;
       for (int i = ti0; i <= ti1; ++i) {
         const int64_t g0 = (v * H + i) * W + tj0;
-        std::fill_n(I + g0 * K, n * K, -1);
-        std::fill_n(D + g0 * K, n * K, std::numeric_limits<float>::infinity());
-        std::fill_n(Rh + g0 * K, n * K, 0.f);
-        std::fill_n(Mk + g0, n, false);
-        if (do_blend) std::copy_n(empty_bg.data(), n * C, IMG + g0 * C);
-      }
-    };
-    if (nw == kTile)
-      copy_row(std::integral_constant<int64_t, kTile>{});
-    else
-      copy_row(std::integral_constant<int64_t, 0>{});
-    for (int i = ti0; i <= ti1; ++i) {
-      const int64_t g0 = (v * H + i) * W + tj0;
-      for (int j = tj0; j <= tj1; ++j) {
-        const int p = (i - ti0) * kTile + (j - tj0);
-        const int c = cnt[p];
-        if (c == 0) continue;
-        const int64_t g = g0 + (j - tj0);
-        for (int e = 0; e < c; ++e) {
-          I[g * K + e] = li[p * 8 + e];
-          D[g * K + e] = ld[p * 8 + e];
-          Rh[g * K + e] = lr[p * 8 + e];
-        }
-        const float lim = ld[p * 8] + merge;
-        float den = 0.f;
-        float num[16] = {0};
-        for (int e = 0; e < c; ++e) {
-          if (!(ld[p * 8 + e] <= lim)) break;
-          const float w = lr[p * 8 + e];
-          den += w;
-          if (do_blend) {
-            const float* a = A + (v * N + li[p * 8 + e]) * C;
-            for (int64_t ch = 0; ch < C; ++ch) num[ch] += w * a[ch];
+        int32_t* ri = kStream ? bi : I + g0 * K;
+        float* rd = kStream ? bd : D + g0 * K;
+        float* rr = kStream ? br : Rh + g0 * K;
+        float* rimg = kStream ? bimg : IMG + g0 * C;
+        bool* rm = Mk + g0;
+        std::fill_n(ri, nw * K, -1);
+        std::fill_n(rd, nw * K, std::numeric_limits<float>::infinity());
+        std::fill_n(rr, nw * K, 0.f);
+        std::fill_n(rm, nw, false);
+        if (do_blend) std::copy_n(empty_bg.data(), nw * C, rimg);
+        for (int jj = 0; jj < nwrt; ++jj) {
+          const int p = (i - ti0) * kTile + jj;
+          const int c = cnt[p];
+          if (c == 0) continue;
+          for (int e = 0; e < c; ++e) {
+            ri[jj * K + e] = li[p * 8 + e];
+            rd[jj * K + e] = ld[p * 8 + e];
+            rr[jj * K + e] = lr[p * 8 + e];
+          }
+          const float lim = ld[p * 8] + merge;
+          float den = 0.f;
+          float num[16] = {0};
+          for (int e = 0; e < c; ++e) {
+            if (!(ld[p * 8 + e] <= lim)) break;
+            const float w = lr[p * 8 + e];
+            den += w;
+            if (do_blend) {
+              const float* a = A + (v * N + li[p * 8 + e]) * C;
+              for (int64_t ch = 0; ch < C; ++ch) num[ch] += w * a[ch];
+            }
+          }
+          rm[jj] = den > 0.f;
+          if (do_blend && den > 0.f) {
+            for (int64_t ch = 0; ch < C; ++ch) rimg[jj * C + ch] = num[ch] / den;
           }
         }
-        Mk[g] = den > 0.f;
-        if (do_blend && den > 0.f) {
-          for (int64_t ch = 0; ch < C; ++ch) IMG[g * C + ch] = num[ch] / den;
+#ifdef DSS_HAVE_AVX2
+        if constexpr (kStream) {
+          stream_bytes(I + g0 * K, bi, sizeof(int32_t) * nw * K);
+          stream_bytes(D + g0 * K, bd, sizeof(float) * nw * K);
+          stream_bytes(Rh + g0 * K, br, sizeof(float) * nw * K);
+          if (do_blend) stream_bytes(IMG + g0 * C, bimg, sizeof(float) * nw * C);
         }
+#endif
       }
-    }
+    };
+    using Full = std::integral_constant<int64_t, kTile>;
+    using Part = std::integral_constant<int64_t, 0>;
+    using Stream = std::true_type;
+    using Plain = std::false_type;
+    const bool full = nwrt == kTile && KC > 0;
+    if (vec)
+      full ? write_rows(Full{}, Stream{}) : write_rows(Part{}, Stream{});
+    else
+      full ? write_rows(Full{}, Plain{}) : write_rows(Part{}, Plain{});
+#ifdef DSS_HAVE_AVX2
+    if (vec) _mm_sfence();  // this thread's streaming stores are weakly ordered: drain them
+#endif
   };
   using K5 = std::integral_constant<int64_t, 5>;
   using Any = std::integral_constant<int64_t, 0>;
@@ -1192,6 +1231,7 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
         if (!(den > 0.f)) continue;
         const float* gp = GR + g * C;
         const float* ip = IMG + g * C;
+        const double rden = 1.0 / (double)den;  // one division per pixel, not 2C per fragment
         for (int e = 0; e < nvis; ++e) {
           const int64_t k = pi[e];
           const float* s = P + (v * N + k) * kFields;
@@ -1201,12 +1241,13 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
           const float rf = pr[e];
           double drho = 0;
           for (int64_t c = 0; c < C; ++c) {
-            drho += (double)gp[c] * (wk[c] - ip[c]) / den;
-            a[6 + c] += (double)gp[c] * rf / den;
+            drho += (double)gp[c] * (wk[c] - ip[c]) * rden;
+            a[6 + c] += (double)gp[c] * rf * rden;
           }
           const float dx = ((float)j + 0.5f) - s[0], dy = py - s[1];
           const float q = quad(s, dx, dy);
-          const double ex = std::exp(-0.5 * (double)q);
+          // exp(-q/2) as the forward computed it (float32): d rho / d norm of rho = norm exp(-q/2)
+          const double ex = std::exp(-0.5f * q);
           a[5] += drho * ex;
           const double dq = -0.5 * drho * (double)s[5] * ex;
           a[2] += dq * dx * dx;
