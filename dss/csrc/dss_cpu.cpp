@@ -1611,8 +1611,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
   m.def("set_vector_path", &set_vector_path,
-        "enable/disable the AVX2 path of visibility_backward (dss rule); returns the previous setting");
-  m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 path");
+        "enable/disable the AVX2 paths (rasterize_forward's tile loop and write-out, visibility_backward's "
+        "dss rule); returns the previous setting");
+  m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 paths");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
   m.def("morton_order", &morton_order, "stable Z-order permutation of (N, 3) float32 points (CPU)");
