@@ -71,3 +71,22 @@ def front_view_run(start: torch.Tensor, target: torch.Tensor, shading="mask", **
     opt = MultiViewOptimizer(start, sn, lambda c: render(target, tn, c, st, shading=shading).images,
                              OptimizerConfig(**cfg), st, sampler=Fixed(), shading=shading, image_size=64)
     return opt.run()
+
+
+def _cpu_has_avx2() -> bool:
+    import platform
+
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            return " avx2" in f.read()
+    except OSError:
+        return False
+
+
+def skip_without_vector_path() -> None:
+    """Skip a vector-vs-scalar kernel test where the C++ module has no AVX2 path, but fail where
+    the CPU has AVX2 and the build lacks the path (that would hide the path from every test)."""
+    assert not _cpu_has_avx2(), "this CPU has AVX2 but the kernel was built without the vector path"
+    pytest.skip("no AVX2 on this CPU: the scalar path is the only one")

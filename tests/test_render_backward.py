@@ -2,7 +2,7 @@
 
 import pytest
 import torch
-from scenes import axis_camera, random_scene
+from scenes import axis_camera, random_scene, skip_without_vector_path
 
 from dss.render import RenderSettings, render
 
@@ -412,18 +412,6 @@ def test_float64_inputs_render_and_differentiate_on_both_backends(cpp_backend):
     assert (p.grad - ref).norm() <= 1e-3 * ref.norm()
 
 
-def _cpu_has_avx2() -> bool:
-    import platform
-
-    if platform.machine() not in ("x86_64", "AMD64"):
-        return False
-    try:
-        with open("/proc/cpuinfo") as f:
-            return " avx2" in f.read()
-    except OSError:
-        return False
-
-
 @pytest.mark.parametrize(("K", "C", "window"), [(5, 3, 4), (5, 1, 4), (3, 3, 7), (8, 2, 8), (5, 3, 12), (2, 1, 5)])
 def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend):
     """The AVX2 evaluation of the dss rule (8 pixels of a window row per vector, every case
@@ -438,8 +426,7 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend)
 
     mod = _ext.load_cpu()
     if not mod.vector_path_available():
-        assert not _cpu_has_avx2(), "this CPU has AVX2 but the kernel was built without the vector path"
-        pytest.skip("no AVX2 on this CPU: the scalar path is the only one")
+        skip_without_vector_path()
     pts, nrm, cams, sigma, _ = random_scene(K * 10 + C, n=1200, views=3, size=(48, 64))
     pts = pts * 1.4  # some splats off the image, some straddling its border
     out = render(pts, nrm, cams, RenderSettings(window=4, spatial_sort=False), sigma=sigma, backend=cpp_backend)

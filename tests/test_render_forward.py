@@ -4,7 +4,7 @@ import math
 
 import pytest
 import torch
-from scenes import axis_camera, random_scene, sphere_points
+from scenes import axis_camera, random_scene, skip_without_vector_path, sphere_points
 
 from dss.rasterizer import reference as ref
 from dss.rasterizer.fragments import Fragments
@@ -260,7 +260,7 @@ def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
 
     mod = _ext.load_cpu()
     if not mod.vector_path_available():
-        pytest.skip("no AVX2 on this CPU (or not an x86-64 build): the scalar path is the only one")
+        skip_without_vector_path()
     pts, nrm, cams, sigma, _ = random_scene(K * 10 + C, n=2500, views=3, size=(45, 70))
     pts = torch.cat([pts * 1.3, pts[:300] * 1.3])  # 300 exact duplicates
     nrm = torch.cat([nrm, nrm[:300]])
