@@ -24,7 +24,11 @@ _failed: dict[str, str] = {}
 __all__ = ["load_cpu", "cpu_available", "build_error", "openmp_enabled"]
 
 
-_BASE_CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
+# -ffp-contract=off: no fused multiply-adds, so the kernels round as the torch expressions they
+# mirror. -fno-math-errno -fno-trapping-math change no result (sqrt need not set errno, and no
+# program here traps on floating-point exceptions); they let the compiler vectorise loops with
+# square roots and divisions under selects (the projection kernels).
+_BASE_CFLAGS = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-std=c++17"]
 # at::parallel_for is a header template that expands to `#pragma omp parallel` when torch's
 # parallel backend is OpenMP (every Linux wheel): compiled without -fopenmp the pragma is
 # ignored and every kernel silently runs on one thread (measured: the 20K-point visibility

@@ -370,6 +370,10 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
         splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling,
                                 settings.znear, settings.filter_variance)
     attrs = shade(shading, points, normals, cameras, colors)
+    if backend == "cpp":
+        # one copy here (the sun shader's attributes are a permuted view) instead of one in every
+        # kernel that reads them (rasteriser, blend and visibility backward)
+        attrs = attrs.float().contiguous()
     C = attrs.shape[-1]
     bg = torch.as_tensor(settings.background, dtype=torch.float32, device=points.device).flatten()
     if bg.numel() not in (1, C):

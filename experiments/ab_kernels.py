@@ -10,7 +10,8 @@ captured once from the working tree's ``render()``, then the ``base`` revision's
 process and called in turn, ``--reps`` times each; the medians (after ``--skip`` warm-up calls)
 and their ratio are printed and written to ``--out`` (JSON). The kernel must have the same
 signature in both revisions (``rasterize_forward``, ``visibility_backward`` and
-``blend_backward`` have since session 19). The numbers in docs/performance.md's "What changed
+``blend_backward`` have since session 19, ``project_splats_forward`` and
+``project_splats_backward`` since 0f36c07). The numbers in docs/performance.md's "What changed
 this session" come from this comparison.
 """
 
@@ -28,7 +29,8 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCE = "dss/csrc/dss_cpu.cpp"
-KERNELS = ("rasterize_forward", "visibility_backward", "blend_backward")
+KERNELS = ("rasterize_forward", "visibility_backward", "blend_backward", "project_splats_forward",
+           "project_splats_backward")
 VIS_WINDOW_ARG = 12  # position of the window half size in visibility_backward's arguments
 
 

@@ -29,6 +29,9 @@
 #include <immintrin.h>
 #define DSS_AVX2 __attribute__((target("avx2")))
 #endif
+// Bodies shared by a baseline and an AVX2 function: inlined into both, so each is compiled (and
+// vectorised) for its caller's instruction set.
+#define DSS_INLINE inline __attribute__((always_inline))
 
 namespace {
 
@@ -1280,7 +1283,7 @@ struct SplatGeometry {
   float X, Y, Z, Zs, nc[3], inv, nh[3], m1[3], m2[3], m1n, m2n, A11, A12, A22, w, detJ, s2, S11, S12, S22, detS;
 };
 
-inline SplatGeometry splat_geometry(const float* p, const float* n, const float* Rv, const float* tv, float f,
+DSS_INLINE SplatGeometry splat_geometry(const float* p, const float* n, const float* Rv, const float* tv, float f,
                                     float sigma, float fv, float zn) {
   SplatGeometry g;
   float pc[3];
@@ -1309,6 +1312,50 @@ inline SplatGeometry splat_geometry(const float* p, const float* n, const float*
   return g;
 }
 
+// One view's points [k0, k1) of project_splats_forward: straight-line code (the branches are
+// selects) so that the compiler vectorises the loop; every lane does the scalar loop's float32
+// operations in the same order (no contraction: -ffp-contract=off), so both give the same bits.
+struct ProjectView {
+  const float *Pp, *Nn, *Rv, *tv, *Sg;
+  float f, cx, cy, fv, C2, zn;
+  bool culling;
+};
+
+DSS_INLINE void project_forward_range(const ProjectView& a, int64_t k0, int64_t k1, float* O) {
+  // (the view's values in locals: stores through o could alias a's fields otherwise)
+  const float *Pp = a.Pp, *Nn = a.Nn, *Rv = a.Rv, *tv = a.tv, *Sg = a.Sg;
+  const float f = a.f, cx = a.cx, cy = a.cy, fv = a.fv, C2 = a.C2, zn = a.zn;
+  const bool culling = a.culling;
+#pragma omp simd
+  for (int64_t k = k0; k < k1; ++k) {
+    const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, zn);
+    const float X = g.X, Y = g.Y, Z = g.Z, Zs = g.Zs, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+    float* o = O + k * kFields;
+    o[0] = f * X / Zs + cx;
+    o[1] = f * Y / Zs + cy;
+    o[2] = S22 / detS;
+    o[3] = -2.f * S12 / detS;
+    o[4] = S11 / detS;
+    o[5] = g.detJ / (2.f * 3.14159265358979f * std::sqrt(detS));
+    o[6] = Z;
+    o[7] = std::sqrt(C2 * S11);
+    o[8] = std::sqrt(C2 * S22);
+    // valid: in front of the near plane and (without culling, or) facing the camera
+    const int front = Z > zn, facing = (g.nc[0] * X + g.nc[1] * Y + g.nc[2] * Z) < 0.f;
+    o[9] = (front & (facing | !culling)) ? 1.f : 0.f;
+  }
+}
+
+void project_forward_plain(const ProjectView& a, int64_t k0, int64_t k1, float* O) {
+  project_forward_range(a, k0, k1, O);
+}
+
+#ifdef DSS_HAVE_AVX2
+DSS_AVX2 void project_forward_avx2(const ProjectView& a, int64_t k0, int64_t k1, float* O) {
+  project_forward_range(a, k0, k1, O);
+}
+#endif
+
 // Forward-only fused version of dss/splats.py project_splats (same formulas; used when no
 // gradient is needed, where the torch version's many (V, N) temporaries dominate at 100K points).
 torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals, torch::Tensor R, torch::Tensor t,
@@ -1323,41 +1370,127 @@ torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals
   const int64_t N = points.size(0), V = R.size(0);
   sigma = sigma.to(torch::kFloat32).expand({N}).contiguous();
   auto out = pooled_empty({V, N, kFields}, torch::kFloat32);
-  const float* Pp = points.data_ptr<float>();
-  const float* Nn = normals.data_ptr<float>();
   const float* Rr = R.data_ptr<float>();
   const float* Tt = t.data_ptr<float>();
   const float* Ff = focal.data_ptr<float>();
   const float* Cc = principal.data_ptr<float>();
-  const float* Sg = sigma.data_ptr<float>();
   float* O = out.data_ptr<float>();
-  const float fv = (float)filter_variance, C2 = 2.f * (float)cutoff, zn = (float)znear;
-  dynamic_for(V * ((N + 1023) / 1024), 1, [&](int64_t item) {
-    const int64_t nb = (N + 1023) / 1024;
+  const bool vec = use_vector_path();
+  const int64_t nb = (N + 1023) / 1024;
+  dynamic_for(V * nb, 1, [&](int64_t item) {
     const int64_t v = item / nb, k0 = (item % nb) * 1024, k1 = std::min(N, k0 + 1024);
-    const float* Rv = Rr + v * 9;
-    const float f = Ff[v], cx = Cc[v * 2], cy = Cc[v * 2 + 1];
-    for (int64_t k = k0; k < k1; ++k) {
-      const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, Tt + v * 3, f, Sg[k], fv, zn);
-      const float X = g.X, Y = g.Y, Z = g.Z, Zs = g.Zs, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
-      const float* nc = g.nc;
-      float* o = O + (v * N + k) * kFields;
-      o[0] = f * X / Zs + cx;
-      o[1] = f * Y / Zs + cy;
-      o[2] = S22 / detS;
-      o[3] = -2.f * S12 / detS;
-      o[4] = S11 / detS;
-      o[5] = g.detJ / (2.f * 3.14159265358979f * std::sqrt(detS));
-      o[6] = Z;
-      o[7] = std::sqrt(C2 * S11);
-      o[8] = std::sqrt(C2 * S22);
-      bool valid = Z > zn;
-      if (culling) valid = valid && (nc[0] * X + nc[1] * Y + nc[2] * Z) < 0.f;
-      o[9] = valid ? 1.f : 0.f;
+    const ProjectView a{points.data_ptr<float>(), normals.data_ptr<float>(), Rr + v * 9, Tt + v * 3,
+                        sigma.data_ptr<float>(), Ff[v], Cc[v * 2], Cc[v * 2 + 1], (float)filter_variance,
+                        2.f * (float)cutoff, (float)znear, culling};
+#ifdef DSS_HAVE_AVX2
+    if (vec) {
+      project_forward_avx2(a, k0, k1, O + v * N * kFields);
+      return;
     }
+#endif
+    project_forward_plain(a, k0, k1, O + v * N * kFields);
   });
   return out;
 }
+
+// One view's points [k0, k1) of project_splats_backward: dL/dp and dL/dn (world frame) into six
+// planes of N values (gout[c * N + k]: dL/dp_c for c < 3, dL/dn_(c-3) after). Straight-line like project_forward_range (culled splats compute
+// garbage that a select replaces with zeros), so the loop vectorises with the scalar bits.
+struct ProjectGradView {
+  const float *Pp, *Nn, *Rv, *tv, *Sg, *PK, *GK;
+  float f, fv, C;
+};
+
+DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
+  // (the view's values in locals: stores through out could alias a's fields otherwise)
+  const float *Pp = a.Pp, *Nn = a.Nn, *Rv = a.Rv, *tv = a.tv, *Sg = a.Sg, *PK = a.PK, *GK = a.GK;
+  const float f = a.f, fv = a.fv, C = a.C;
+  constexpr int kB = 64;
+  for (int64_t b0 = k0; b0 < k1; b0 += kB) {
+  const int nbk = (int)std::min<int64_t>(kB, k1 - b0);
+  // The gradient's fields 0-8 and the packed rows' 7-9 transposed to planes first: the vectoriser
+  // takes no strided loads from rows of 10 with gaps.
+  alignas(32) float gk[9][kB], pk[3][kB];
+  for (int j = 0; j < nbk; ++j) {
+    for (int c = 0; c < 9; ++c) gk[c][j] = GK[(b0 + j) * kFields + c];
+    for (int c = 0; c < 3; ++c) pk[c][j] = PK[(b0 + j) * kFields + 7 + c];
+  }
+#pragma omp simd
+  for (int j = 0; j < nbk; ++j) {
+    const int64_t k = b0 + j;
+    // valid splats only (Z > znear): no near-plane substitute for Z
+    const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, -kInf);
+    const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
+    const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+    // (copies, not pointers into g: g then stays in registers and the loop vectorises)
+    const float nc[3] = {g.nc[0], g.nc[1], g.nc[2]}, nh[3] = {g.nh[0], g.nh[1], g.nh[2]};
+    const float m1[3] = {g.m1[0], g.m1[1], g.m1[2]}, m2[3] = {g.m2[0], g.m2[1], g.m2[2]};
+    const float iS = 1.f / detS;
+    const float sqS = std::sqrt(detS);
+    // outputs: u v a b2 c norm depth rx ry
+    const float gu = gk[0][j], gv = gk[1][j], ga = gk[2][j], gb2 = gk[3][j], gc = gk[4][j], gnorm = gk[5][j];
+    const float gz = gk[6][j], grx = gk[7][j], gry = gk[8][j], rx = pk[0][j], ry = pk[1][j];
+    const float k2pi = 1.f / (2.f * 3.14159265358979f);
+    float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
+    // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
+    gS11 = rx > 0.f ? gS11 + grx * C / rx : gS11;
+    gS22 = ry > 0.f ? gS22 + gry * C / ry : gS22;
+    const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
+    const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
+    const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
+    float gm1[3], gm2[3];
+    for (int c = 0; c < 3; ++c) {
+      gm1[c] = 2.f * gA11 * m1[c] + gA12 * m2[c];
+      gm2[c] = 2.f * gA22 * m2[c] + gA12 * m1[c];
+    }
+    const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
+    const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
+    float gnh[3];
+    for (int c = 0; c < 3; ++c) {
+      gm1[c] += gm1n * nh[c];
+      gm2[c] += gm2n * nh[c];
+      gnh[c] = gm1n * m1[c] + gm2n * m2[c];
+    }
+    // detJ = f^2 |w| / Z^3
+    const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
+    gnh[0] += gw * X;
+    gnh[1] += gw * Y;
+    gnh[2] += gw * Z;
+    float gX = gw * nh[0], gY = gw * nh[1];
+    float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
+    // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
+    gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
+    gX += -gm1[2] * f * iZ * iZ;
+    gY += -gm2[2] * f * iZ * iZ;
+    // u = f X / Z + cx, v = f Y / Z + cy
+    gX += gu * f * iZ;
+    gY += gv * f * iZ;
+    gZ += -(gu * X + gv * Y) * f * iZ * iZ;
+    // nh = nc / sqrt(|nc|^2 + 1e-20)
+    const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
+    float gnc[3];
+    for (int c = 0; c < 3; ++c) gnc[c] = inv * gnh[c] - inv * inv * inv * dn * nc[c];
+    const float gpc[3] = {gX, gY, gZ};
+    const bool valid = pk[2][j] > 0.f;  // culled splats get no gradient (the renderer never reads them)
+    for (int c = 0; c < 3; ++c) {  // world = R^T camera
+      const float op = Rv[0 * 3 + c] * gpc[0] + Rv[1 * 3 + c] * gpc[1] + Rv[2 * 3 + c] * gpc[2];
+      const float on = Rv[0 * 3 + c] * gnc[0] + Rv[1 * 3 + c] * gnc[1] + Rv[2 * 3 + c] * gnc[2];
+      gout[c * N + k] = valid ? op : 0.f;
+      gout[(3 + c) * N + k] = valid ? on : 0.f;
+    }
+  }
+  }
+}
+
+void project_backward_plain(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
+  project_backward_range(a, N, k0, k1, gout);
+}
+
+#ifdef DSS_HAVE_AVX2
+DSS_AVX2 void project_backward_avx2(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
+  project_backward_range(a, N, k0, k1, gout);
+}
+#endif
 
 // Backward of project_splats_forward (the same formulas as dss/splats.py project_splats): given
 // dL/dpacked (V,N,10), returns dL/dpoints and dL/dnormals (N,3) with sigma, cameras and the
@@ -1379,102 +1512,49 @@ std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::
   TORCH_CHECK(packed.size(0) == V && packed.size(1) == N && packed.size(2) == kFields, "packed must be (V,N,10)");
   TORCH_CHECK(grad.sizes() == packed.sizes(), "grad must be shaped like packed");
   sigma = sigma.to(torch::kFloat32).expand({N}).contiguous();
-  const float* Pp = points.data_ptr<float>();
-  const float* Nn = normals.data_ptr<float>();
   const float* Rr = R.data_ptr<float>();
   const float* Tt = t.data_ptr<float>();
   const float* Ff = focal.data_ptr<float>();
-  const float* Sg = sigma.data_ptr<float>();
   const float* PK = packed.data_ptr<float>();
   const float* GK = grad.data_ptr<float>();
-  const float fv = (float)filter_variance, C = (float)cutoff;
-  static thread_local std::vector<float> gview_tl;  // per view: dL/dp (3), dL/dn (3), world frame
+  static thread_local std::vector<float> gview_tl;  // per view six planes: dL/dp (3), dL/dn (3), world frame
   auto& gview = gview_tl;  // the calling thread's instance, also inside the worker lambdas
   gview.resize((size_t)(V * N * 6));
+  const bool vec = use_vector_path();
   const int64_t nb = (N + 1023) / 1024;
   dynamic_for(V * nb, 1, [&](int64_t item) {
     const int64_t v = item / nb, k0 = (item % nb) * 1024, k1 = std::min(N, k0 + 1024);
-    const float* Rv = Rr + v * 9;
-    const float f = Ff[v];
-    for (int64_t k = k0; k < k1; ++k) {
-      float* out = gview.data() + (v * N + k) * 6;
-      const float* pk = PK + (v * N + k) * kFields;
-      const float* gk = GK + (v * N + k) * kFields;
-      if (!(pk[9] > 0.f)) {
-        for (int a = 0; a < 6; ++a) out[a] = 0.f;
-        continue;
-      }
-      // valid splats only (Z > znear): no near-plane substitute for Z
-      const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, Tt + v * 3, f, Sg[k], fv, -kInf);
-      const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
-      const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
-      const float *nc = g.nc, *nh = g.nh, *m1 = g.m1, *m2 = g.m2;
-      const float iS = 1.f / detS;
-      const float sqS = std::sqrt(detS);
-      // outputs: u v a b2 c norm depth rx ry
-      const float gu = gk[0], gv = gk[1], ga = gk[2], gb2 = gk[3], gc = gk[4], gnorm = gk[5], gz = gk[6];
-      const float grx = gk[7], gry = gk[8];
-      const float k2pi = 1.f / (2.f * 3.14159265358979f);
-      float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
-      // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
-      if (pk[7] > 0.f) gS11 += grx * C / pk[7];
-      if (pk[8] > 0.f) gS22 += gry * C / pk[8];
-      const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
-      const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
-      const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
-      float gm1[3], gm2[3];
-      for (int a = 0; a < 3; ++a) {
-        gm1[a] = 2.f * gA11 * m1[a] + gA12 * m2[a];
-        gm2[a] = 2.f * gA22 * m2[a] + gA12 * m1[a];
-      }
-      const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
-      const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
-      float gnh[3];
-      for (int a = 0; a < 3; ++a) {
-        gm1[a] += gm1n * nh[a];
-        gm2[a] += gm2n * nh[a];
-        gnh[a] = gm1n * m1[a] + gm2n * m2[a];
-      }
-      // detJ = f^2 |w| / Z^3
-      const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
-      gnh[0] += gw * X;
-      gnh[1] += gw * Y;
-      gnh[2] += gw * Z;
-      float gX = gw * nh[0], gY = gw * nh[1];
-      float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
-      // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
-      gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
-      gX += -gm1[2] * f * iZ * iZ;
-      gY += -gm2[2] * f * iZ * iZ;
-      // u = f X / Z + cx, v = f Y / Z + cy
-      gX += gu * f * iZ;
-      gY += gv * f * iZ;
-      gZ += -(gu * X + gv * Y) * f * iZ * iZ;
-      // nh = nc / sqrt(|nc|^2 + 1e-20)
-      const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
-      float gnc[3];
-      for (int a = 0; a < 3; ++a) gnc[a] = inv * gnh[a] - inv * inv * inv * dn * nc[a];
-      const float gpc[3] = {gX, gY, gZ};
-      for (int a = 0; a < 3; ++a) {  // world = R^T camera
-        out[a] = Rv[0 * 3 + a] * gpc[0] + Rv[1 * 3 + a] * gpc[1] + Rv[2 * 3 + a] * gpc[2];
-        out[3 + a] = Rv[0 * 3 + a] * gnc[0] + Rv[1 * 3 + a] * gnc[1] + Rv[2 * 3 + a] * gnc[2];
-      }
+    const ProjectGradView a{points.data_ptr<float>(), normals.data_ptr<float>(), Rr + v * 9, Tt + v * 3,
+                            sigma.data_ptr<float>(), PK + v * N * kFields, GK + v * N * kFields, Ff[v],
+                            (float)filter_variance, (float)cutoff};
+    float* gout = gview.data() + v * N * 6;
+#ifdef DSS_HAVE_AVX2
+    if (vec) {
+      project_backward_avx2(a, N, k0, k1, gout);
+      return;
     }
+#endif
+    project_backward_plain(a, N, k0, k1, gout);
   });
   auto gp = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
   auto gn = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
   float* GP = gp.data_ptr<float>();
   float* GN = gn.data_ptr<float>();
-  at::parallel_for(0, N, 1024, [&](int64_t k0, int64_t k1) {
-    for (int64_t k = k0; k < k1; ++k) {
-      float s[6] = {0, 0, 0, 0, 0, 0};
-      for (int64_t v = 0; v < V; ++v)
-        for (int a = 0; a < 6; ++a) s[a] += gview[(v * N + k) * 6 + a];
-      for (int a = 0; a < 3; ++a) {
-        GP[k * 3 + a] = s[a];
-        GN[k * 3 + a] = s[3 + a];
+  dynamic_for(nb, 1, [&](int64_t item) {
+    // views added in view order, a run of points side by side (contiguous in every plane)
+    const int64_t k0 = item * 1024, n = std::min<int64_t>(N, k0 + 1024) - k0;
+    alignas(32) float acc[6][1024];
+    for (int a = 0; a < 6; ++a) std::fill_n(acc[a], n, 0.f);
+    for (int64_t v = 0; v < V; ++v)
+      for (int a = 0; a < 6; ++a) {
+        const float* g = gview.data() + (v * 6 + a) * N + k0;
+        for (int64_t j = 0; j < n; ++j) acc[a][j] += g[j];
       }
-    }
+    for (int64_t j = 0; j < n; ++j)
+      for (int a = 0; a < 3; ++a) {
+        GP[(k0 + j) * 3 + a] = acc[a][j];
+        GN[(k0 + j) * 3 + a] = acc[3 + a][j];
+      }
   });
   return {gp, gn};
 }
