@@ -151,3 +151,34 @@ def test_ab_kernels_times_two_builds_on_captured_inputs(tmp_path, cpp_backend):
     assert json.loads(out.read_text())["kernel"] == "blend_backward"
     with pytest.raises(SystemExit, match="git show"):
         ab_kernels.git_source("no-such-revision")
+
+
+def test_ab_steps_child_times_one_kind_of_step(cpp_backend):
+    """experiments.ab_steps' child (what each alternating process runs) times render + SMAPE and
+    backward for the kind asked and reports medians of the measured steps."""
+    from experiments import ab_steps
+
+    r = ab_steps.run(["--child", "--kinds", "position", "--points", "400", "--views", "2", "--image-size", "32",
+                      "--warmup", "0", "--steps", "3"])
+    assert len(r["runs_ms"]) == 3 and all(f > 0 and b > 0 for f, b in r["runs_ms"])
+    assert r["step_ms"] == pytest.approx(sorted(f + b for f, b in r["runs_ms"])[1])
+    with pytest.raises(SystemExit):
+        ab_steps.run(["--rounds", "2"])  # no --base
+
+
+@pytest.mark.slow
+def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
+    """experiments.ab_steps checks HEAD out into a worktree, runs both versions' steps in child
+    processes with their own kernel builds (two builds: ~2-3 min) and removes the worktree."""
+    import subprocess
+
+    from experiments import ab_steps
+
+    out = tmp_path / "steps.json"
+    r = ab_steps.run(["--base", "HEAD", "--kinds", "normal", "--points", "400", "--views", "2", "--image-size", "32",
+                      "--rounds", "1", "--warmup", "0", "--steps", "2", "--out", str(out)])
+    s = r["summary"]["normal"]
+    assert s["base"]["step_ms"] > 0 and s["work"]["step_ms"] > 0 and s["speedup"] > 0
+    assert len(r["children"]["normal"]["base"]) == 1 and json.loads(out.read_text())["base"] == "HEAD"
+    worktrees = subprocess.run(["git", "worktree", "list"], cwd=ab_steps.REPO, capture_output=True, text=True).stdout
+    assert "dss_ab_steps_" not in worktrees

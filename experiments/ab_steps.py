@@ -1,0 +1,152 @@
+"""Interleaved A/B timing of whole optimisation steps: a git revision against the working tree.
+
+    python -m experiments.ab_steps --base a8ccf9b [--kinds normal position] [--rounds 5]
+
+``dss-runtime-table`` run twice minutes apart on the same code can differ by 20% on a shared
+machine, more than a change that saves a few ms per step. Here the two versions take turns: the
+base revision is checked out into a temporary git worktree (with ``../shared`` linked beside it,
+so both time the kangaroo cloud), and each round runs one child process per version and kind,
+alternating, each building its own copy of the C++ kernel (separate ``TORCH_EXTENSIONS_DIR``).
+A child times what ``dss-runtime-table`` times for one step (``render`` + SMAPE forward, then
+``backward``; the 20K-point kangaroo cloud, 12 views at 256x256, visibility window 4 for
+position steps): ``--warmup`` steps, then ``--steps`` measured ones, and reports their medians.
+The result is the median over rounds of each child's medians, and the ratio base / working
+tree, written to ``--out`` (JSON) with every child's numbers. Drift in the machine's speed hits
+both versions alike because they alternate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def child(kind: str, n_points: int, views: int, size: int, threads: int, warmup: int, steps: int) -> dict:
+    """Time ``steps`` optimisation steps of one kind with whichever ``dss`` is first on the path."""
+    import torch
+
+    from dss.losses import smape_loss
+    from dss.render import RenderSettings, render
+    from dss.splats import auto_sigma
+    from dss.views import SphereViewSampler
+    from experiments.bench_render import benchmark_cloud
+    from experiments.runtime_table import FOV_DEG, JITTER, POSITION_WINDOW, TARGET_NOISE
+
+    torch.set_num_threads(threads)
+    pts, nrm, _ = benchmark_cloud(n_points)
+    settings = RenderSettings(window=POSITION_WINDOW)
+    cams = SphereViewSampler((0.0, 0.0, 0.0), float(pts.norm(dim=1).max()), views=views, image_size=size,
+                             fov_deg=FOV_DEG, jitter=JITTER, seed=0).sample()
+    sigma = auto_sigma(pts)
+    target_pts = pts + TARGET_NOISE * torch.randn(pts.shape, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        target = render(target_pts, nrm, cams, settings, sigma=sigma, backend="cpp").images
+
+    def step():
+        p = pts.clone().requires_grad_(kind == "position")
+        n = nrm.clone().requires_grad_(kind == "normal")
+        t0 = time.perf_counter()
+        loss = smape_loss(render(p, n, cams, settings, sigma=sigma, backend="cpp").images, target,
+                          channel_reduction="mean")
+        t1 = time.perf_counter()
+        loss.backward()
+        return 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1)
+
+    for _ in range(warmup):
+        step()
+    runs = [step() for _ in range(steps)]
+    return {"forward_ms": statistics.median(r[0] for r in runs), "backward_ms": statistics.median(r[1] for r in runs),
+            "step_ms": statistics.median(r[0] + r[1] for r in runs), "runs_ms": runs}
+
+
+def _run_child(repo: Path, ext_dir: Path, args, kind: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(repo), TORCH_EXTENSIONS_DIR=str(ext_dir),
+               OMP_NUM_THREADS=str(args.threads))
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--kinds", kind, "--points", str(args.points),
+           "--views", str(args.views), "--image-size", str(args.image_size), "--threads", str(args.threads),
+           "--warmup", str(args.warmup), "--steps", str(args.steps)]
+    out = subprocess.run(cmd, cwd=repo, env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"child for {repo} ({kind}) failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--base", help="git revision to compare the working tree with")
+    ap.add_argument("--kinds", nargs="+", choices=("position", "normal"), default=["normal", "position"])
+    ap.add_argument("--points", type=int, default=20000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--image-size", type=int, default=256)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--steps", type=int, default=9)
+    ap.add_argument("--out", default=None, help="JSON file for the result")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        res = child(args.kinds[0], args.points, args.views, args.image_size, args.threads, args.warmup, args.steps)
+        print(json.dumps(res))
+        return res
+    if not args.base:
+        ap.error("--base is required")
+    if args.rounds < 1 or args.steps < 1:
+        ap.error("--rounds and --steps must be at least 1")
+    rev = subprocess.run(["git", "rev-parse", "--short", args.base], cwd=REPO, capture_output=True, text=True)
+    if rev.returncode != 0:
+        raise SystemExit(f"git rev-parse {args.base} failed: {rev.stderr.strip()}")
+    with tempfile.TemporaryDirectory(prefix="dss_ab_steps_") as tmp:
+        tmp = Path(tmp)
+        base_repo = tmp / "repo"
+        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_repo), args.base], cwd=REPO, check=True)
+        shared = REPO.parent / "shared"
+        if shared.exists():
+            (tmp / "shared").symlink_to(shared)  # the kangaroo beside the worktree too, not a torus
+        try:
+            versions = {"base": (base_repo, tmp / "ext_base"), "work": (REPO, tmp / "ext_work")}
+            rounds: dict = {k: {v: [] for v in versions} for k in args.kinds}
+            for r in range(args.rounds):
+                for kind in args.kinds:
+                    for name, (repo, ext) in versions.items():
+                        rounds[kind][name].append(_run_child(repo, ext, args, kind))
+                    b, w = rounds[kind]["base"][-1]["step_ms"], rounds[kind]["work"][-1]["step_ms"]
+                    print(f"round {r + 1}/{args.rounds} {kind}: base {b:.1f} ms, working tree {w:.1f} ms", flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(base_repo)], cwd=REPO)
+    summary = {}
+    for kind, per in rounds.items():
+        med = {name: {key: statistics.median(c[key] for c in per[name]) for key in ("forward_ms", "backward_ms", "step_ms")}
+               for name in per}
+        summary[kind] = {**med, "speedup": med["base"]["step_ms"] / med["work"]["step_ms"]}
+        print(f"{kind} step, {args.points} points, {args.threads} thread(s): base {args.base} "
+              f"{med['base']['forward_ms']:.1f} + {med['base']['backward_ms']:.1f} = {med['base']['step_ms']:.1f} ms, "
+              f"working tree {med['work']['forward_ms']:.1f} + {med['work']['backward_ms']:.1f} = "
+              f"{med['work']['step_ms']:.1f} ms, speed-up {summary[kind]['speedup']:.2f}x")
+    result = {"base": args.base, "base_commit": rev.stdout.strip(), "points": args.points, "views": args.views,
+              "image_size": args.image_size, "threads": args.threads, "rounds": args.rounds, "warmup": args.warmup,
+              "steps": args.steps, "summary": summary, "children": rounds,
+              "command": "python -m experiments.ab_steps " + " ".join(sys.argv[1:] if argv is None else argv)}
+    if args.out:
+        from dss.io_utils import atomic_write_json
+
+        atomic_write_json(args.out, result)
+    return result
+
+
+def main(argv=None) -> int:
+    run(argv)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
