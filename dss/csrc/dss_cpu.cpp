@@ -1394,8 +1394,9 @@ torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals
 }
 
 // One view's points [k0, k1) of project_splats_backward: dL/dp and dL/dn (world frame) into six
-// planes of N values (gout[c * N + k]: dL/dp_c for c < 3, dL/dn_(c-3) after). Straight-line like project_forward_range (culled splats compute
-// garbage that a select replaces with zeros), so the loop vectorises with the scalar bits.
+// planes of N values (gout[c * N + k]: dL/dp_c for c < 3, dL/dn_(c-3) after). Straight-line like
+// project_forward_range (culled splats compute values that a select replaces with zeros), so the
+// loop vectorises with the scalar bits.
 struct ProjectGradView {
   const float *Pp, *Nn, *Rv, *tv, *Sg, *PK, *GK;
   float f, fv, C;
@@ -1407,78 +1408,78 @@ DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int6
   const float f = a.f, fv = a.fv, C = a.C;
   constexpr int kB = 64;
   for (int64_t b0 = k0; b0 < k1; b0 += kB) {
-  const int nbk = (int)std::min<int64_t>(kB, k1 - b0);
-  // The gradient's fields 0-8 and the packed rows' 7-9 transposed to planes first: the vectoriser
-  // takes no strided loads from rows of 10 with gaps.
-  alignas(32) float gk[9][kB], pk[3][kB];
-  for (int j = 0; j < nbk; ++j) {
-    for (int c = 0; c < 9; ++c) gk[c][j] = GK[(b0 + j) * kFields + c];
-    for (int c = 0; c < 3; ++c) pk[c][j] = PK[(b0 + j) * kFields + 7 + c];
-  }
+    const int nbk = (int)std::min<int64_t>(kB, k1 - b0);
+    // The gradient's fields 0-8 and the packed rows' 7-9 transposed to planes first: the vectoriser
+    // takes no strided loads from rows of 10 with gaps.
+    alignas(32) float gk[9][kB], pk[3][kB];
+    for (int j = 0; j < nbk; ++j) {
+      for (int c = 0; c < 9; ++c) gk[c][j] = GK[(b0 + j) * kFields + c];
+      for (int c = 0; c < 3; ++c) pk[c][j] = PK[(b0 + j) * kFields + 7 + c];
+    }
 #pragma omp simd
-  for (int j = 0; j < nbk; ++j) {
-    const int64_t k = b0 + j;
-    // valid splats only (Z > znear): no near-plane substitute for Z
-    const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, -kInf);
-    const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
-    const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
-    // (copies, not pointers into g: g then stays in registers and the loop vectorises)
-    const float nc[3] = {g.nc[0], g.nc[1], g.nc[2]}, nh[3] = {g.nh[0], g.nh[1], g.nh[2]};
-    const float m1[3] = {g.m1[0], g.m1[1], g.m1[2]}, m2[3] = {g.m2[0], g.m2[1], g.m2[2]};
-    const float iS = 1.f / detS;
-    const float sqS = std::sqrt(detS);
-    // outputs: u v a b2 c norm depth rx ry
-    const float gu = gk[0][j], gv = gk[1][j], ga = gk[2][j], gb2 = gk[3][j], gc = gk[4][j], gnorm = gk[5][j];
-    const float gz = gk[6][j], grx = gk[7][j], gry = gk[8][j], rx = pk[0][j], ry = pk[1][j];
-    const float k2pi = 1.f / (2.f * 3.14159265358979f);
-    float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
-    // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
-    gS11 = rx > 0.f ? gS11 + grx * C / rx : gS11;
-    gS22 = ry > 0.f ? gS22 + gry * C / ry : gS22;
-    const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
-    const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
-    const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
-    float gm1[3], gm2[3];
-    for (int c = 0; c < 3; ++c) {
-      gm1[c] = 2.f * gA11 * m1[c] + gA12 * m2[c];
-      gm2[c] = 2.f * gA22 * m2[c] + gA12 * m1[c];
+    for (int j = 0; j < nbk; ++j) {
+      const int64_t k = b0 + j;
+      // valid splats only (Z > znear): no near-plane substitute for Z
+      const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, -kInf);
+      const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
+      const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+      // (copies, not pointers into g: g then stays in registers and the loop vectorises)
+      const float nc[3] = {g.nc[0], g.nc[1], g.nc[2]}, nh[3] = {g.nh[0], g.nh[1], g.nh[2]};
+      const float m1[3] = {g.m1[0], g.m1[1], g.m1[2]}, m2[3] = {g.m2[0], g.m2[1], g.m2[2]};
+      const float iS = 1.f / detS;
+      const float sqS = std::sqrt(detS);
+      // outputs: u v a b2 c norm depth rx ry
+      const float gu = gk[0][j], gv = gk[1][j], ga = gk[2][j], gb2 = gk[3][j], gc = gk[4][j], gnorm = gk[5][j];
+      const float gz = gk[6][j], grx = gk[7][j], gry = gk[8][j], rx = pk[0][j], ry = pk[1][j];
+      const float k2pi = 1.f / (2.f * 3.14159265358979f);
+      float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
+      // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
+      gS11 = rx > 0.f ? gS11 + grx * C / rx : gS11;
+      gS22 = ry > 0.f ? gS22 + gry * C / ry : gS22;
+      const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
+      const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
+      const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
+      float gm1[3], gm2[3];
+      for (int c = 0; c < 3; ++c) {
+        gm1[c] = 2.f * gA11 * m1[c] + gA12 * m2[c];
+        gm2[c] = 2.f * gA22 * m2[c] + gA12 * m1[c];
+      }
+      const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
+      const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
+      float gnh[3];
+      for (int c = 0; c < 3; ++c) {
+        gm1[c] += gm1n * nh[c];
+        gm2[c] += gm2n * nh[c];
+        gnh[c] = gm1n * m1[c] + gm2n * m2[c];
+      }
+      // detJ = f^2 |w| / Z^3
+      const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
+      gnh[0] += gw * X;
+      gnh[1] += gw * Y;
+      gnh[2] += gw * Z;
+      float gX = gw * nh[0], gY = gw * nh[1];
+      float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
+      // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
+      gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
+      gX += -gm1[2] * f * iZ * iZ;
+      gY += -gm2[2] * f * iZ * iZ;
+      // u = f X / Z + cx, v = f Y / Z + cy
+      gX += gu * f * iZ;
+      gY += gv * f * iZ;
+      gZ += -(gu * X + gv * Y) * f * iZ * iZ;
+      // nh = nc / sqrt(|nc|^2 + 1e-20)
+      const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
+      float gnc[3];
+      for (int c = 0; c < 3; ++c) gnc[c] = inv * gnh[c] - inv * inv * inv * dn * nc[c];
+      const float gpc[3] = {gX, gY, gZ};
+      const bool valid = pk[2][j] > 0.f;  // culled splats get no gradient (the renderer never reads them)
+      for (int c = 0; c < 3; ++c) {  // world = R^T camera
+        const float op = Rv[0 * 3 + c] * gpc[0] + Rv[1 * 3 + c] * gpc[1] + Rv[2 * 3 + c] * gpc[2];
+        const float on = Rv[0 * 3 + c] * gnc[0] + Rv[1 * 3 + c] * gnc[1] + Rv[2 * 3 + c] * gnc[2];
+        gout[c * N + k] = valid ? op : 0.f;
+        gout[(3 + c) * N + k] = valid ? on : 0.f;
+      }
     }
-    const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
-    const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
-    float gnh[3];
-    for (int c = 0; c < 3; ++c) {
-      gm1[c] += gm1n * nh[c];
-      gm2[c] += gm2n * nh[c];
-      gnh[c] = gm1n * m1[c] + gm2n * m2[c];
-    }
-    // detJ = f^2 |w| / Z^3
-    const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
-    gnh[0] += gw * X;
-    gnh[1] += gw * Y;
-    gnh[2] += gw * Z;
-    float gX = gw * nh[0], gY = gw * nh[1];
-    float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
-    // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
-    gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
-    gX += -gm1[2] * f * iZ * iZ;
-    gY += -gm2[2] * f * iZ * iZ;
-    // u = f X / Z + cx, v = f Y / Z + cy
-    gX += gu * f * iZ;
-    gY += gv * f * iZ;
-    gZ += -(gu * X + gv * Y) * f * iZ * iZ;
-    // nh = nc / sqrt(|nc|^2 + 1e-20)
-    const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
-    float gnc[3];
-    for (int c = 0; c < 3; ++c) gnc[c] = inv * gnh[c] - inv * inv * inv * dn * nc[c];
-    const float gpc[3] = {gX, gY, gZ};
-    const bool valid = pk[2][j] > 0.f;  // culled splats get no gradient (the renderer never reads them)
-    for (int c = 0; c < 3; ++c) {  // world = R^T camera
-      const float op = Rv[0 * 3 + c] * gpc[0] + Rv[1 * 3 + c] * gpc[1] + Rv[2 * 3 + c] * gpc[2];
-      const float on = Rv[0 * 3 + c] * gnc[0] + Rv[1 * 3 + c] * gnc[1] + Rv[2 * 3 + c] * gnc[2];
-      gout[c * N + k] = valid ? op : 0.f;
-      gout[(3 + c) * N + k] = valid ? on : 0.f;
-    }
-  }
   }
 }
 
@@ -1692,7 +1693,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
   m.def("set_vector_path", &set_vector_path,
         "enable/disable the AVX2 paths (rasterize_forward's tile loop and write-out, visibility_backward's "
-        "dss rule); returns the previous setting");
+        "dss rule, the projection's forward and backward loops); returns the previous setting");
   m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 paths");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
