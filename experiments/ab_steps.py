@@ -7,9 +7,10 @@ machine, more than a change that saves a few ms per step. Here the two versions 
 base revision is checked out into a temporary git worktree (with ``../shared`` linked beside it,
 so both time the kangaroo cloud), and each round runs one child process per version and kind,
 alternating, each building its own copy of the C++ kernel (separate ``TORCH_EXTENSIONS_DIR``).
-A child times what ``dss-runtime-table`` times for one step (``render`` + SMAPE forward, then
-``backward``; the 20K-point kangaroo cloud, 12 views at 256x256, visibility window 4 for
-position steps): ``--warmup`` steps, then ``--steps`` measured ones, and reports their medians.
+A child times steps as ``dss-runtime-table`` does, with the base revision's own
+``experiments.runtime_table.time_steps`` (``render`` + SMAPE forward, then ``backward``; the
+20K-point kangaroo cloud, 12 views at 256x256, visibility window 4 for position steps):
+``--warmup`` steps, then ``--steps`` measured ones, and reports their medians.
 The result is the median over rounds of each child's medians, and the ratio base / working
 tree, written to ``--out`` (JSON) with every child's numbers. Drift in the machine's speed hits
 both versions alike because they alternate.
@@ -24,48 +25,26 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def child(kind: str, n_points: int, views: int, size: int, threads: int, warmup: int, steps: int) -> dict:
-    """Time ``steps`` optimisation steps of one kind with whichever ``dss`` is first on the path."""
+    """Time ``steps`` optimisation steps of one kind with whichever ``dss`` is first on the path,
+    through that revision's ``experiments.runtime_table.time_steps`` (what ``dss-runtime-table``
+    times: fresh cameras every step, render + SMAPE, backward, an Adam update not timed)."""
     import torch
 
-    from dss.losses import smape_loss
-    from dss.render import RenderSettings, render
-    from dss.splats import auto_sigma
-    from dss.views import SphereViewSampler
     from experiments.bench_render import benchmark_cloud
-    from experiments.runtime_table import FOV_DEG, JITTER, POSITION_WINDOW, TARGET_NOISE
+    from experiments.runtime_table import time_steps
 
     torch.set_num_threads(threads)
     pts, nrm, _ = benchmark_cloud(n_points)
-    settings = RenderSettings(window=POSITION_WINDOW)
-    cams = SphereViewSampler((0.0, 0.0, 0.0), float(pts.norm(dim=1).max()), views=views, image_size=size,
-                             fov_deg=FOV_DEG, jitter=JITTER, seed=0).sample()
-    sigma = auto_sigma(pts)
-    target_pts = pts + TARGET_NOISE * torch.randn(pts.shape, generator=torch.Generator().manual_seed(1))
-    with torch.no_grad():
-        target = render(target_pts, nrm, cams, settings, sigma=sigma, backend="cpp").images
-
-    def step():
-        p = pts.clone().requires_grad_(kind == "position")
-        n = nrm.clone().requires_grad_(kind == "normal")
-        t0 = time.perf_counter()
-        loss = smape_loss(render(p, n, cams, settings, sigma=sigma, backend="cpp").images, target,
-                          channel_reduction="mean")
-        t1 = time.perf_counter()
-        loss.backward()
-        return 1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1)
-
-    for _ in range(warmup):
-        step()
-    runs = [step() for _ in range(steps)]
-    return {"forward_ms": statistics.median(r[0] for r in runs), "backward_ms": statistics.median(r[1] for r in runs),
-            "step_ms": statistics.median(r[0] + r[1] for r in runs), "runs_ms": runs}
+    r = time_steps(pts, nrm, "cpp", kind, views, size, warmup, steps, progress=False)
+    runs = list(zip(r["forward_ms_runs"], r["backward_ms_runs"]))
+    return {"forward_ms": r["forward_ms"], "backward_ms": r["backward_ms"],
+            "step_ms": statistics.median(f + b for f, b in runs), "runs_ms": runs}
 
 
 def _run_child(repo: Path, ext_dir: Path, args, kind: str) -> dict:

@@ -1346,10 +1346,6 @@ DSS_INLINE void project_forward_range(const ProjectView& a, int64_t k0, int64_t 
   }
 }
 
-void project_forward_plain(const ProjectView& a, int64_t k0, int64_t k1, float* O) {
-  project_forward_range(a, k0, k1, O);
-}
-
 #ifdef DSS_HAVE_AVX2
 DSS_AVX2 void project_forward_avx2(const ProjectView& a, int64_t k0, int64_t k1, float* O) {
   project_forward_range(a, k0, k1, O);
@@ -1388,7 +1384,7 @@ torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals
       return;
     }
 #endif
-    project_forward_plain(a, k0, k1, O + v * N * kFields);
+    project_forward_range(a, k0, k1, O + v * N * kFields);  // the baseline build
   });
   return out;
 }
@@ -1483,10 +1479,6 @@ DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int6
   }
 }
 
-void project_backward_plain(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
-  project_backward_range(a, N, k0, k1, gout);
-}
-
 #ifdef DSS_HAVE_AVX2
 DSS_AVX2 void project_backward_avx2(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
   project_backward_range(a, N, k0, k1, gout);
@@ -1535,7 +1527,7 @@ std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::
       return;
     }
 #endif
-    project_backward_plain(a, N, k0, k1, gout);
+    project_backward_range(a, N, k0, k1, gout);  // the baseline build
   });
   auto gp = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
   auto gn = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
