@@ -25,7 +25,7 @@ from .ordering import SORT_MIN_POINTS, spatial_order
 from .pointcloud import bbox_diagonal
 from .rasterizer import reference as ref_raster
 from .rasterizer.fragments import Fragments
-from .shading import shade
+from .shading import SunLights, shade
 from .splats import Splats, auto_sigma, project_splats, tangent_planes
 from .visibility import visibility_grad_reference
 
@@ -261,7 +261,7 @@ class _CppBlend(torch.autograd.Function):
     def forward(ctx, packed, attrs, points, images, frags_t, cam_t, background, opts):
         ctx.save_for_backward(packed.detach(), attrs.detach(), *frags_t, *cam_t, background, images)
         ctx.opts = opts
-        return images.clone()
+        return _ext.load_cpu().pooled_clone(images)  # a copy: callers may edit the output in place
 
     @staticmethod
     def backward(ctx, grad):
@@ -304,6 +304,44 @@ class _CppProject(torch.autograd.Function):
                                                          float(s.filter_variance))
         return (gp.to(points.dtype) if ctx.needs_input_grad[0] else None,
                 gn.to(normals.dtype) if ctx.needs_input_grad[1] else None, None, None, None, None, None, None)
+
+
+class _CppSunShade(torch.autograd.Function):
+    """:class:`dss.shading.SunLights` (one light per channel) with the C++ kernels both ways.
+
+    forward: ``sun_shade_forward`` writes the (V, N, 3) attributes the other kernels read,
+    contiguous; backward: ``sun_shade_backward`` gives dL/dnormals and dL/dalbedo. Replaces the
+    torch version's product, clamp, permute and copy and their autograd graph (20K points, 12
+    views, 2 threads: ~5 ms per step forward + backward).
+    """
+
+    @staticmethod
+    def forward(ctx, normals, albedo, dirs, ambient):
+        alb = albedo.detach() if albedo is not None else normals.new_empty(0)
+        out = _ext.load_cpu().sun_shade_forward(normals.detach(), alb, dirs, float(ambient))
+        ctx.save_for_backward(normals.detach(), alb, dirs)
+        ctx.ambient = float(ambient)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        normals, alb, dirs = ctx.saved_tensors
+        need_n, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if not (need_n or need_a):
+            return None, None, None, None
+        gn, ga = _ext.load_cpu().sun_shade_backward(normals, alb, dirs, ctx.ambient, grad.contiguous().float(),
+                                                    bool(need_a))
+        return (gn.to(normals.dtype) if need_n else None, ga.to(alb.dtype) if need_a else None, None, None)
+
+
+def _shade(shading, points, normals, cameras: Cameras, colors, backend: str) -> torch.Tensor:
+    """:func:`dss.shading.shade`, with the fused C++ sun shader on the ``cpp`` backend."""
+    sun = SunLights() if isinstance(shading, str) and shading == "sun" else shading
+    # the kernel takes no gradient to the cameras and one albedo value per point and channel
+    if (backend != "cpp" or not isinstance(sun, SunLights) or not sun.one_light_per_channel()
+            or cameras.R.requires_grad or (colors is not None and colors.shape != (points.shape[0], 3))):
+        return shade(shading, points, normals, cameras, colors)
+    return _CppSunShade.apply(normals, colors, sun.world_directions(cameras, normals).float(), sun.ambient)
 
 
 def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras):
@@ -369,7 +407,7 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
     else:
         splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling,
                                 settings.znear, settings.filter_variance)
-    attrs = shade(shading, points, normals, cameras, colors)
+    attrs = _shade(shading, points, normals, cameras, colors, backend)
     if backend == "cpp":
         # one copy here (the sun shader's attributes are a permuted view) instead of one in every
         # kernel that reads them (rasteriser, blend and visibility backward)

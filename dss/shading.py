@@ -56,15 +56,25 @@ class SunLights:
     colors: torch.Tensor = field(default_factory=lambda: torch.eye(3))
     ambient: float = 0.3
 
+    def world_directions(self, cameras: Cameras, like: torch.Tensor) -> torch.Tensor:
+        """(V, L, 3): the directions towards the lights in world space for each camera.
+
+        (R_v n) . d_l = n . (R_v^T d_l), so shading needs the lights turned into world space
+        instead of every normal rotated into every camera.
+        """
+        return torch.einsum("vij,li->vlj", cameras.R.to(like), self.directions.to(like))
+
+    def one_light_per_channel(self) -> bool:
+        """Whether light l colours channel l only (the default identity ``colors``)."""
+        return self.colors.shape == (3, 3) and torch.equal(self.colors.cpu(), torch.eye(3, dtype=self.colors.dtype))
+
     def __call__(self, points, normals, cameras: Cameras, albedo=None) -> torch.Tensor:
-        d = self.directions.to(normals)
-        # (R_v n) . d_l = n . (R_v^T d_l): one (N, 3) x (3, V L) product with the lights turned
-        # into world space, instead of rotating every normal into every camera
-        d_world = torch.einsum("vij,li->vlj", cameras.R.to(normals), d)  # (V,L,3)
+        d_world = self.world_directions(cameras, normals)  # (V,L,3)
         V, L = d_world.shape[:2]
+        # one (N, 3) x (3, V L) product
         lam = (normals @ d_world.reshape(V * L, 3).T).clamp_min(0).view(-1, V, L)  # (N, V, L) diffuse terms
         colors = self.colors.to(normals)
-        if L == 3 and torch.equal(colors, torch.eye(3, dtype=colors.dtype, device=colors.device)):
+        if L == 3 and self.one_light_per_channel():
             rgb = lam + self.ambient  # red, green, blue lights (the default): no mixing
         else:  # a K=L matmul is slow in BLAS for such thin matrices; broadcast instead
             rgb = (lam[..., :, None] * colors).sum(-2) + self.ambient

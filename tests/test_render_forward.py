@@ -247,6 +247,47 @@ def test_sun_shading_is_the_camera_space_diffuse_term():
     assert n.grad.abs().max() > 0
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cpp_sun_shader_matches_the_torch_one(dtype, cpp_backend):
+    """The cpp backend shades "sun" with the fused C++ kernels (dss.render._CppSunShade): the same
+    attributes as SunLights in torch, and the same gradients for normals (any length, a zero
+    normal among them: torch's clamp passes the gradient at n . d = 0) and albedo; render()
+    falls back to torch where the kernel cannot serve (cameras that require grad)."""
+    from dss.cameras import Cameras
+    from dss.render import _shade
+    from dss.shading import SunLights
+
+    pts, nrm, cams, _, colors = random_scene(6, n=2100, views=5)
+    nrm = nrm * (0.5 + torch.rand(len(nrm), 1, generator=torch.Generator().manual_seed(1)))
+    nrm[7] = 0.0
+    pts, nrm, colors = pts.to(dtype), nrm.to(dtype), colors.to(dtype)
+    cams = Cameras(cams.R.to(dtype), cams.t.to(dtype), cams.focal.to(dtype), cams.principal.to(dtype), cams.image_size)
+    g = torch.randn(5, 2100, 3, generator=torch.Generator().manual_seed(2), dtype=dtype)
+    sun = SunLights()
+    for albedo in (None, colors):
+        grads = []
+        for fused in (False, True):
+            n = nrm.clone().requires_grad_()
+            a = None if albedo is None else albedo.clone().requires_grad_()
+            out = _shade("sun", pts, n, cams, a, cpp_backend) if fused else sun(pts, n, cams, a)
+            assert out.shape == (5, 2100, 3)
+            assert (type(out.grad_fn).__name__ == "_CppSunShadeBackward") == fused
+            (out * g).sum().backward()
+            grads.append((out.detach().float(), n.grad, None if a is None else a.grad))
+        (w_t, gn_t, ga_t), (w_c, gn_c, ga_c) = grads
+        torch.testing.assert_close(w_c, w_t, rtol=1e-6, atol=1e-6)
+        assert gn_c.dtype == dtype and gn_t[7].abs().max() > 0
+        torch.testing.assert_close(gn_c, gn_t, rtol=1e-5, atol=1e-5)
+        if albedo is not None:
+            torch.testing.assert_close(ga_c, ga_t, rtol=1e-5, atol=1e-5)
+    # cameras that require grad take the torch path, and get their gradient
+    R = cams.R.clone().requires_grad_()
+    out = _shade("sun", pts, nrm, Cameras(R, cams.t, cams.focal, cams.principal, cams.image_size), None, cpp_backend)
+    assert type(out.grad_fn).__name__ != "_CppSunShadeBackward"
+    out.sum().backward()
+    assert R.grad is not None and R.grad.abs().max() > 0
+
+
 @pytest.mark.parametrize("K,C", [(5, 3), (5, 1), (5, 0), (1, 3), (3, 2), (8, 1)])
 def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
     """The AVX2 tile loop (dss_cpu.cpp tile_fragments_avx2: 16 pixels' cutoff and top-K gate
