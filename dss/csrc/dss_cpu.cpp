@@ -1196,6 +1196,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 // owns its (v, k) accumulators (no race, a fixed sum order per point), and the work is the
 // number of cached fragments, not (splat box area x K) per point as a point-parallel loop over
 // each splat's box would be (2-4x slower at 20K points, 256 px).
+constexpr int64_t kBlendAhead = 8;  // pixels
 std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
                                           torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
                                           torch::Tensor grad, double merge_d) {
@@ -1232,6 +1233,17 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
         const int32_t* pi = I + g * K;
         const float* pd = D + g * K;
         const float* pr = Rh + g * K;
+        if (j + kBlendAhead < W) {
+          // Most cached splats cover only a few pixels of a view, so their rows (splat, attributes,
+          // accumulators) are first touched here and miss the caches: fetch those of the pixel
+          // kBlendAhead columns on while this one is processed.
+          const int32_t* qi = pi + kBlendAhead * K;
+          for (int e = 0; e < K && qi[e] >= 0; ++e) {
+            __builtin_prefetch(P + (v * N + qi[e]) * kFields);
+            __builtin_prefetch(A + (v * N + qi[e]) * C);
+            __builtin_prefetch(acc.data() + qi[e] * S, 1);
+          }
+        }
         if (pi[0] < 0) continue;
         const float lim = pd[0] + merge;
         int nvis = 0;
