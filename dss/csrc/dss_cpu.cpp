@@ -54,6 +54,12 @@ struct Frag {
   uint8_t i0, i1, j0, j1;
 };
 
+// A splat the binning draws: its record (tile fields unset) and its box.
+struct Drawn {
+  Frag f;
+  Box b;
+};
+
 // Same arithmetic as reference.bbox(): float32 floor/ceil, then clamps.
 inline Box splat_box(const float* s, int H, int W) {
   auto clampf = [](float x, float lo, float hi) { return std::min(std::max(x, lo), hi); };
@@ -361,27 +367,27 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   // (References: the worker lambdas must see the calling thread's instances, not their own.)
   static thread_local std::vector<std::vector<int64_t>> offsets_tl;
   static thread_local std::vector<std::vector<Frag>> bins_tl;
-  static thread_local std::vector<std::vector<Box>> boxes_tl;
+  static thread_local std::vector<std::vector<Drawn>> drawn_tl;
   auto& offsets = offsets_tl;
   auto& bins = bins_tl;
-  auto& boxes = boxes_tl;
+  auto& drawn = drawn_tl;
   offsets.resize(V);
   bins.resize(V);
-  boxes.resize(V);
-  for (int64_t v = 0; v < V; ++v) {
-    offsets[v].assign(T + 1, 0);
-    boxes[v].resize(N);
-  }
+  drawn.resize(V);
+  for (int64_t v = 0; v < V; ++v) offsets[v].assign(T + 1, 0);
   dynamic_for(V, 1, [&](int64_t v) {
     auto& off = offsets[v];
-    auto& bx = boxes[v];
+    // One pass over the view's packed rows: the splats that are drawn (valid, box on screen),
+    // each with its record and box, and the number of tiles' bins each box reaches.
+    auto& dr = drawn[v];
+    dr.clear();
     float zlo = std::numeric_limits<float>::infinity(), zhi = -zlo;
     for (int64_t k = 0; k < N; ++k) {
       const float* s = P + (v * N + k) * kFields;
-      if (!(s[9] > 0.f)) { bx[k].j0 = 1; bx[k].j1 = 0; continue; }
-      Box b = splat_box(s, (int)H, (int)W);
-      bx[k] = b;
+      if (!(s[9] > 0.f)) continue;
+      const Box b = splat_box(s, (int)H, (int)W);
       if (b.j1 < b.j0 || b.i1 < b.i0) continue;
+      dr.push_back({{s[0], s[1], s[2], s[3], s[4], s[5], s[6], (int32_t)k, 0, 0, 0, 0}, b});
       zlo = std::min(zlo, s[6]);
       zhi = std::max(zhi, s[6]);
       for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
@@ -392,29 +398,21 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     // Bins filled roughly front to back (splats counting-sorted into kDepthBuckets depth slabs):
     // once a pixel's list is full, most later fragments fail its top-K gate at once. The lists
     // do not depend on this order.
-    std::vector<int32_t> cnt_z(kDepthBuckets + 1, 0), order;
+    const int64_t n = (int64_t)dr.size();
+    std::vector<int32_t> cnt_z(kDepthBuckets + 1, 0), order(n);
+    std::vector<uint16_t> bucket(n);
     const float zscale = zhi > zlo ? (float)(kDepthBuckets - 1) / (zhi - zlo) : 0.f;
-    auto bucket = [&](int64_t k) {
-      const float z = P[(v * N + k) * kFields + 6];
-      return std::min<int>(kDepthBuckets - 1, std::max<int>(0, (int)((z - zlo) * zscale)));
-    };
-    for (int64_t k = 0; k < N; ++k) {
-      const Box& b = bx[k];
-      if (b.j1 < b.j0 || b.i1 < b.i0) continue;
-      cnt_z[bucket(k) + 1]++;
+    for (int64_t d = 0; d < n; ++d) {
+      bucket[d] = (uint16_t)std::min<int>(kDepthBuckets - 1, std::max<int>(0, (int)((dr[d].f.z - zlo) * zscale)));
+      cnt_z[bucket[d] + 1]++;
     }
     for (int z = 0; z < kDepthBuckets; ++z) cnt_z[z + 1] += cnt_z[z];
-    order.resize(cnt_z[kDepthBuckets]);
-    for (int64_t k = 0; k < N; ++k) {
-      const Box& b = bx[k];
-      if (b.j1 < b.j0 || b.i1 < b.i0) continue;
-      order[cnt_z[bucket(k)]++] = (int32_t)k;
-    }
+    for (int64_t d = 0; d < n; ++d) order[cnt_z[bucket[d]]++] = (int32_t)d;
     std::vector<int64_t> fill(off.begin(), off.end() - 1);
-    for (const int32_t k : order) {
-      const Box& b = bx[k];
-      const float* s = P + (v * N + k) * kFields;
-      Frag f{s[0], s[1], s[2], s[3], s[4], s[5], s[6], k, 0, 0, 0, 0};
+    Frag* bin = bins[v].data();
+    for (const int32_t d : order) {
+      const Box& b = dr[d].b;
+      Frag f = dr[d].f;
       for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty) {
         // the box's rows in this tile (the box is clamped to the image, so within the tile's)
         f.i0 = (uint8_t)(std::max(b.i0, ty * kTile) - ty * kTile);
@@ -422,7 +420,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
         for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) {
           f.j0 = (uint8_t)(std::max(b.j0, tx * kTile) - tx * kTile);
           f.j1 = (uint8_t)(std::min(b.j1, tx * kTile + kTile - 1) - tx * kTile);
-          bins[v][fill[ty * TX + tx]++] = f;
+          bin[fill[ty * TX + tx]++] = f;
         }
       }
     }
