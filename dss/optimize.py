@@ -59,6 +59,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from .cameras import Cameras
+from .gc_pause import frozen_gc
 from .hull import fill_displacement, hull_displacement, nearest_covered
 from .losses import l1_loss, smape_loss
 from .regularizers import (
@@ -518,9 +519,24 @@ class MultiViewOptimizer:
     def run(self, progress: Callable[[int, float], None] | None = None) -> OptimizationResult:
         """Run all cycles; ``progress(step, loss)`` is called after each step (progress bars)."""
         c = self.cfg
-        step = 0
         t0 = time.perf_counter()
         gen = torch.Generator().manual_seed(c.seed + 1)
+        with frozen_gc():  # see dss/gc_pause.py: full collections cost ~150 ms each otherwise
+            step = self._run_cycles(progress, gen, t0)
+        if c.final_projection_k > 0:
+            with torch.no_grad():
+                self.points.copy_(project_to_neighbour_planes(
+                    self.points, c.final_projection_k, c.reg_dilation,
+                    threshold=c.final_projection_threshold, local_ratio=c.final_projection_local_ratio,
+                    iterations=c.final_projection_iterations))
+        self.history["wall_time"] = time.perf_counter() - t0
+        self.history["steps"] = step
+        return OptimizationResult(self.points.detach().clone(), self.normals.detach().clone(), self.history)
+
+    def _run_cycles(self, progress, gen: torch.Generator, t0: float) -> int:
+        """The cycles of :meth:`run`; returns the number of steps taken."""
+        c = self.cfg
+        step = 0
         cams = None
         for cycle in range(c.cycles + c.error_aware_cycles):
             if cams is None or c.resample_every_cycle:
@@ -560,15 +576,7 @@ class MultiViewOptimizer:
                                          "loss": loss, "cameras": cams})
                 if progress is not None:
                     progress(step, loss)
-        if c.final_projection_k > 0:
-            with torch.no_grad():
-                self.points.copy_(project_to_neighbour_planes(
-                    self.points, c.final_projection_k, c.reg_dilation,
-                    threshold=c.final_projection_threshold, local_ratio=c.final_projection_local_ratio,
-                    iterations=c.final_projection_iterations))
-        self.history["wall_time"] = time.perf_counter() - t0
-        self.history["steps"] = step
-        return OptimizationResult(self.points.detach().clone(), self.normals.detach().clone(), self.history)
+        return step
 
     def _error_aware(self, cams: Cameras, gen: torch.Generator) -> Cameras:
         with torch.no_grad():

@@ -58,6 +58,7 @@ from pathlib import Path
 
 import torch
 
+from dss.gc_pause import frozen_gc
 from dss.io_utils import atomic_write_json, atomic_write_text
 from dss.losses import smape_loss
 from dss.render import RenderSettings, render
@@ -210,32 +211,33 @@ def time_steps(points: torch.Tensor, normals: torch.Tensor, backend: str, kind: 
     fwd, bwd = [], []
     bar = tqdm(range(warmup + measure), desc=f"{len(points)} pts {backend} {kind}", leave=False,
                disable=not progress, file=sys.stderr)
-    for step in bar:
-        cams = sampler.sample().to(dev)
-        with torch.no_grad():
-            target = render(target_points, normals, cams, settings, backend=backend, sigma=sigma).images
-        opt.zero_grad(set_to_none=True)
-        _sync(dev)
-        t0 = time.perf_counter()
-        img = render(p, n, cams, settings, backend=backend, sigma=sigma).images
-        loss = smape_loss(img, target, channel_reduction="mean")
-        _sync(dev)
-        t1 = time.perf_counter()
-        loss.backward()
-        _sync(dev)
-        t2 = time.perf_counter()
-        if not torch.isfinite(loss):
-            raise RuntimeError(f"{backend} {kind} step {step}: the loss is not finite")
-        if param.grad is None:
-            raise RuntimeError(f"{backend} {kind} step {step}: no gradient reached the {kind}s")
-        with torch.no_grad():
-            param.grad.nan_to_num_(0.0, 0.0, 0.0)
-            opt.step()
-            if kind == "normal":
-                n.copy_(torch.nn.functional.normalize(n, dim=1))
-        if step >= warmup:
-            fwd.append(1e3 * (t1 - t0))
-            bwd.append(1e3 * (t2 - t1))
+    with frozen_gc():  # as MultiViewOptimizer.run does (dss/gc_pause.py)
+        for step in bar:
+            cams = sampler.sample().to(dev)
+            with torch.no_grad():
+                target = render(target_points, normals, cams, settings, backend=backend, sigma=sigma).images
+            opt.zero_grad(set_to_none=True)
+            _sync(dev)
+            t0 = time.perf_counter()
+            img = render(p, n, cams, settings, backend=backend, sigma=sigma).images
+            loss = smape_loss(img, target, channel_reduction="mean")
+            _sync(dev)
+            t1 = time.perf_counter()
+            loss.backward()
+            _sync(dev)
+            t2 = time.perf_counter()
+            if not torch.isfinite(loss):
+                raise RuntimeError(f"{backend} {kind} step {step}: the loss is not finite")
+            if param.grad is None:
+                raise RuntimeError(f"{backend} {kind} step {step}: no gradient reached the {kind}s")
+            with torch.no_grad():
+                param.grad.nan_to_num_(0.0, 0.0, 0.0)
+                opt.step()
+                if kind == "normal":
+                    n.copy_(torch.nn.functional.normalize(n, dim=1))
+            if step >= warmup:
+                fwd.append(1e3 * (t1 - t0))
+                bwd.append(1e3 * (t2 - t1))
     peak, method = mem.stop()
     return {"forward_ms": statistics.median(fwd), "backward_ms": statistics.median(bwd),
             "forward_ms_runs": fwd, "backward_ms_runs": bwd, "warmup": warmup, "measured": measure,

@@ -310,3 +310,29 @@ def test_every_deform_scene_composes_into_a_valid_optimizer_config():
             else:
                 assert opt.hull_step > 0
     assert OptimizerConfig().hull_step == 0.0 and OptimizerConfig().fill_step == 0.0  # the paper's optimiser
+
+
+def test_frozen_gc_freezes_for_the_block_and_leaves_a_callers_freeze_alone():
+    """dss.gc_pause.frozen_gc (around MultiViewOptimizer.run's cycles) freezes the objects alive
+    at entry and unfreezes them at exit, and does neither when something is frozen already."""
+    import gc
+
+    from dss.gc_pause import frozen_gc
+
+    assert gc.get_freeze_count() == 0
+    with frozen_gc():
+        frozen = gc.get_freeze_count()
+        assert frozen > 0
+        with frozen_gc():  # nested: no second freeze, no early unfreeze
+            assert gc.get_freeze_count() == frozen
+        assert gc.get_freeze_count() == frozen
+    assert gc.get_freeze_count() == 0
+    gc.freeze()
+    try:
+        mine = gc.get_freeze_count()
+        with frozen_gc():
+            pass
+        assert gc.get_freeze_count() == mine  # the caller's freeze stays
+    finally:
+        gc.unfreeze()
+    assert gc.get_freeze_count() == 0
