@@ -182,3 +182,21 @@ def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
     assert len(r["children"]["normal"]["base"]) == 1 and json.loads(out.read_text())["base"] == "HEAD"
     worktrees = subprocess.run(["git", "worktree", "list"], cwd=ab_steps.REPO, capture_output=True, text=True).stdout
     assert "dss_ab_steps_" not in worktrees
+
+
+def test_measured_rates_are_peaks_of_repeated_calls():
+    """perf_counts' floor rates: the fastest call of each measurement (a peak, not the mean over
+    a noisy second), and the copy bandwidth the faster of the one-thread and all-thread copies."""
+    from experiments import perf_counts
+
+    calls = iter([3.0, 1.0, 2.0])  # call durations (s) after the warm-up call
+    clock = {"t": 0.0}
+
+    def fn():
+        clock["t"] += next(calls, 10.0)
+
+    # warm-up takes 3 s, then calls of 1, 2 and 10 s until the 12 s budget has passed
+    assert perf_counts._best_rate(fn, 100.0, seconds=12.0, clock=lambda: clock["t"]) == pytest.approx(100.0)
+    r = perf_counts.measure_rates(seconds=0.05)
+    assert r["flops_per_s"] > 1e8
+    assert r["bytes_per_s"] == max(r["copy_bytes_per_s_1thread"], r["copy_bytes_per_s_all_threads"]) > 1e8
