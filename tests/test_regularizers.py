@@ -1,6 +1,7 @@
 """Weighted-PCA repulsion / projection regularisers (paper "Surface regularization")."""
 
 import math
+import os
 
 import pytest
 import torch
@@ -408,3 +409,45 @@ def test_outlier_projection_local_test_keeps_a_sharp_edge_and_never_writes_into_
     assert bool(moved_local[o]) and slope_distance < 0.1 * S
     with pytest.raises(ValueError, match="local_ratio"):
         project_to_neighbour_planes(roof, k=16, threshold=3.0, local_ratio=-1.0)
+
+
+def test_batched_eigh_splits_over_threads_with_the_same_bits():
+    """local_frames' eigh (dss.regularizers.batched_eigh) splits large CPU batches over torch's
+    threads: the same eigenvalues and eigenvectors, bit for bit, as one torch.linalg.eigh call,
+    for a batch that splits unevenly and for one small enough to take the plain call."""
+    from dss import regularizers as R
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(2 * R._EIGH_MIN_CHUNK + 37, 3, 3, generator=g, dtype=torch.float64)
+    cov = a @ a.transpose(1, 2)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        for mats in (cov, cov[:100]):
+            want = torch.linalg.eigh(mats)
+            got = R.batched_eigh(mats)
+            assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+        assert R._eigh_pool is not None and R._eigh_pool_key[1] >= 2  # the split ran
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_batched_eigh_replaces_a_pool_made_by_another_process():
+    """A child forked after the parent made its eigh thread pool inherits the pool object but
+    not its threads: batched_eigh starts a new pool when the pool's process id is not its own
+    (simulated here: forking a process that has run OpenMP is itself unsafe with libgomp)."""
+    from dss import regularizers as R
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        a = torch.randn(3 * R._EIGH_MIN_CHUNK, 3, 3, dtype=torch.float64)
+        cov = a @ a.transpose(1, 2)
+        R.batched_eigh(cov)
+        stale = R._eigh_pool
+        R._eigh_pool_key = (os.getpid() + 1, R._eigh_pool_key[1])  # as a forked child sees it
+        got = R.batched_eigh(cov)
+        assert R._eigh_pool is not stale and R._eigh_pool_key[0] == os.getpid()
+        assert torch.equal(got[1], torch.linalg.eigh(cov)[1])
+    finally:
+        torch.set_num_threads(before)
