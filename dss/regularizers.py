@@ -287,6 +287,8 @@ def batched_eigh(mats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     global _eigh_pool, _eigh_pool_key
     with _eigh_pool_lock:
         if _eigh_pool is None or _eigh_pool_key[0] != os.getpid() or _eigh_pool_key[1] < chunks:
+            if _eigh_pool is not None and _eigh_pool_key[0] == os.getpid():
+                _eigh_pool.shutdown(wait=False)  # its threads end once idle
             _eigh_pool = ThreadPoolExecutor(max_workers=chunks, thread_name_prefix="dss-eigh")
             _eigh_pool_key = (os.getpid(), chunks)
         pool = _eigh_pool

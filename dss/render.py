@@ -311,8 +311,8 @@ class _CppSunShade(torch.autograd.Function):
 
     forward: ``sun_shade_forward`` writes the (V, N, 3) attributes the other kernels read,
     contiguous; backward: ``sun_shade_backward`` gives dL/dnormals and dL/dalbedo. Replaces the
-    torch version's product, clamp, permute and copy and their autograd graph (20K points, 12
-    views, 2 threads: ~5 ms per step forward + backward).
+    torch version's product, clamp, permute and copy and their autograd graph (at 20K points, 12
+    views, 2 threads, ~5 ms per step forward + backward in torch, ~0.6 ms in the kernels).
     """
 
     @staticmethod
@@ -409,8 +409,9 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
                                 settings.znear, settings.filter_variance)
     attrs = _shade(shading, points, normals, cameras, colors, backend)
     if backend == "cpp":
-        # one copy here (the sun shader's attributes are a permuted view) instead of one in every
-        # kernel that reads them (rasteriser, blend and visibility backward)
+        # one copy here (a torch shader's attributes can be a permuted or expanded view; the C++
+        # sun shader's are contiguous already) instead of one in every kernel that reads them
+        # (rasteriser, blend and visibility backward)
         attrs = attrs.float().contiguous()
     C = attrs.shape[-1]
     bg = torch.as_tensor(settings.background, dtype=torch.float32, device=points.device).flatten()
