@@ -17,6 +17,9 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).parent / "csrc"
+# The CPU module's sources: the renderer's kernels (whose module table also names the others) and
+# the regularisers' weighted PCA.
+CPU_SOURCES = ("dss_cpu.cpp", "frames_cpu.cpp")
 _lock = threading.Lock()
 _cache: dict[str, object] = {}
 _failed: dict[str, str] = {}
@@ -85,7 +88,7 @@ def load_cpu():
             _failed[name] = "disabled by DSS_DISABLE_CPP"
             return None
         try:
-            mod = _build(name, [_CSRC / "dss_cpu.cpp"])
+            mod = _build(name, [_CSRC / f for f in CPU_SOURCES])
         except Exception as e:  # compiler missing, ninja missing, build error
             _failed[name] = f"{type(e).__name__}: {e}"
             warnings.warn(

@@ -80,7 +80,9 @@ from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
 
+from dss._ext import build_error, load_cpu
 from dss.knn import Neighbors, gather_neighbors, knn
 
 logger = logging.getLogger(__name__)
@@ -163,6 +165,8 @@ class RegularizerConfig:
         projection_mode: ``"paper"`` or ``"point_to_plane"`` (see module docstring).
         covariance_weight: ``"squared"`` (paper: SVD of w-weighted vectors) or ``"linear"``.
         knn_backend: ``"auto"``, ``"scipy"`` or ``"torch"`` (see :mod:`dss.knn`).
+        pca_backend: ``"auto"``, ``"cpp"`` or ``"torch"``: the weighted PCA's implementation
+            (see :func:`local_frames`).
         cutoff: neighbourhood radius as a multiple of ``D`` (paper: 1, neighbours within ``D``;
             ``inf``: all ``k`` nearest, weighted by psi). With 1, a point farther than ``D``
             from all its neighbours (a noise tail point, an outlier) has no neighbourhood and
@@ -180,6 +184,7 @@ class RegularizerConfig:
     projection_mode: str = "paper"
     covariance_weight: str = "squared"
     knn_backend: str = "auto"
+    pca_backend: str = "auto"
     cutoff: float = 1.0
     min_neighbors: int = 0
 
@@ -208,6 +213,8 @@ class RegularizerConfig:
             raise ValueError(
                 f"covariance_weight must be 'squared' or 'linear', got {self.covariance_weight!r}"
             )
+        if self.pca_backend not in PCA_BACKENDS:
+            raise ValueError(f"pca_backend must be one of {PCA_BACKENDS}, got {self.pca_backend!r}")
 
 
 # ----------------------------------------------------------------------------- core
@@ -395,60 +402,46 @@ def _basis_from_normal(n: torch.Tensor) -> torch.Tensor:
     return torch.stack([t1, t2, n], dim=-1)
 
 
-def local_frames(
-    points: torch.Tensor,
-    normals: torch.Tensor | None = None,
-    occlusion: torch.Tensor | None = None,
-    *,
-    bandwidth: float,
-    k: int = DEFAULT_K,
-    sharpness_angle: float = DEFAULT_SHARPNESS,
-    covariance_weight: str = "squared",
-    neighbors: Neighbors | None = None,
-    backend: str = "auto",
-    cutoff: float = 1.0,
-    min_neighbors: int = 0,
-) -> LocalFrames:
-    """Weighted PCA of every point's neighbourhood (see module docstring).
+PCA_BACKENDS = ("auto", "cpp", "torch")
 
-    Args:
-        points: (N, 3) positions (may require grad).
-        normals: (N, 3) normals or None; normalised internally, zero normals stay zero.
-        occlusion: (N,) occlusion counts ``o_k`` >= 0 or None (= 0).
-        bandwidth: ``D``.
-        k: neighbours per point (ignored if ``neighbors`` is given).
-        sharpness_angle: ``Theta`` in radians.
-        covariance_weight: ``"squared"`` (paper) or ``"linear"``.
-        neighbors: precomputed :func:`find_neighbors` result (self excluded), or None.
-        backend: kNN backend when searching.
-        cutoff: neighbours farther than ``cutoff * D`` are masked out (paper: 1).
-        min_neighbors: ... except the nearest ``min_neighbors`` (0: none; the neighbour lists
-            are sorted by distance, as :func:`find_neighbors` returns them).
 
-    Neighbourhoods with fewer than 3 valid neighbours have no well-defined plane; for those the
-    frame is built from the given normal ``n_i`` when it is non-zero (else the PCA result, which
-    is arbitrary but harmless: such rows carry little or no weight).
-    """
-    _check_inputs(points, normals, occlusion)
-    if not bandwidth > 0:
-        raise ValueError(f"bandwidth must be positive, got {bandwidth}")
-    n_pts = points.shape[0]
-    if neighbors is None:
-        neighbors = find_neighbors(points, k, backend=backend)
-    idx = neighbors.idx
-    if idx.shape[0] != n_pts:
-        raise ValueError(
-            f"neighbour list has {idx.shape[0]} rows but there are {n_pts} points; recompute it"
-        )
-    if idx.device != points.device:
-        idx = idx.to(points.device)
+def _frames_kernel(points: torch.Tensor, pca_backend: str):
+    """The C++ module local_frames should use, or None for the torch twin."""
+    if pca_backend not in PCA_BACKENDS:
+        raise ValueError(f"pca_backend must be one of {PCA_BACKENDS}, got {pca_backend!r}")
+    if pca_backend == "torch":
+        return None
+    usable = points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64)
+    if pca_backend == "cpp" and not usable:
+        raise ValueError(f"pca_backend='cpp' needs CPU float32/float64 points, got {points.dtype} on {points.device}")
+    mod = load_cpu() if usable else None
+    if mod is None and pca_backend == "cpp":
+        raise RuntimeError(f"pca_backend='cpp' but the C++ kernel is unavailable: {build_error()}")
+    return mod
 
+
+class _NeighbourDiff(torch.autograd.Function):
+    """(N, 3) points -> (N, K, 3) ``(p_i - p_k) * valid`` with the C++ forward and backward (the
+    backward is a scatter of the (N, K, 3) gradient onto both ends of each pair)."""
+
+    @staticmethod
+    def forward(ctx, points, idx, valid):
+        ctx.save_for_backward(idx, valid)
+        return load_cpu().neighbor_diff_forward(points.detach(), idx, valid)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        idx, valid = ctx.saved_tensors
+        return load_cpu().neighbor_diff_backward(grad, idx, valid, idx.shape[0]), None, None
+
+
+def _frames_torch(points, normals, occlusion, idx, bandwidth, sharpness_angle, covariance_weight, cutoff,
+                  min_neighbors):
+    """local_frames in torch ops (the twin of frames_cpu.cpp): (valid, diff, psi, w, centroid,
+    eigenvalues, eigenvectors, unit normals or None)."""
     nb = gather_neighbors(points, idx)  # (N, K, 3), differentiable
     diff = points.unsqueeze(1) - nb  # p_i - p_k
-    if covariance_weight not in ("squared", "linear"):
-        raise ValueError(
-            f"covariance_weight must be 'squared' or 'linear', got {covariance_weight!r}"
-        )
     with torch.no_grad():
         dist2 = (diff.detach() ** 2).sum(-1)
         valid = (idx >= 0) & (dist2 <= (cutoff * bandwidth) ** 2)
@@ -484,13 +477,93 @@ def local_frames(
         evals, evecs = batched_eigh(cov.double())
         evals = evals.to(points.dtype)
         evecs = evecs.to(points.dtype)
+    return valid, diff, psi, w, centroid, evals, evecs, nrm if normals is not None else None
+
+
+def local_frames(
+    points: torch.Tensor,
+    normals: torch.Tensor | None = None,
+    occlusion: torch.Tensor | None = None,
+    *,
+    bandwidth: float,
+    k: int = DEFAULT_K,
+    sharpness_angle: float = DEFAULT_SHARPNESS,
+    covariance_weight: str = "squared",
+    neighbors: Neighbors | None = None,
+    backend: str = "auto",
+    cutoff: float = 1.0,
+    min_neighbors: int = 0,
+    pca_backend: str = "auto",
+) -> LocalFrames:
+    """Weighted PCA of every point's neighbourhood (see module docstring).
+
+    Args:
+        points: (N, 3) positions (may require grad).
+        normals: (N, 3) normals or None; normalised internally, zero normals stay zero.
+        occlusion: (N,) occlusion counts ``o_k`` >= 0 or None (= 0).
+        bandwidth: ``D``.
+        k: neighbours per point (ignored if ``neighbors`` is given).
+        sharpness_angle: ``Theta`` in radians.
+        covariance_weight: ``"squared"`` (paper) or ``"linear"``.
+        neighbors: precomputed :func:`find_neighbors` result (self excluded), or None.
+        backend: kNN backend when searching.
+        cutoff: neighbours farther than ``cutoff * D`` are masked out (paper: 1).
+        min_neighbors: ... except the nearest ``min_neighbors`` (0: none; the neighbour lists
+            are sorted by distance, as :func:`find_neighbors` returns them).
+        pca_backend: ``"cpp"`` (the C++ kernel, dss/csrc/frames_cpu.cpp: CPU float32/float64
+            points), ``"torch"`` (torch ops, its twin) or ``"auto"`` (the kernel where it applies
+            and builds). They agree to the points' precision, not bit for bit, and the
+            eigenvectors' signs may differ (see ``LocalFrames.normal``).
+
+    Neighbourhoods with fewer than 3 valid neighbours have no well-defined plane; for those the
+    frame is built from the given normal ``n_i`` when it is non-zero (else the PCA result, which
+    is arbitrary but harmless: such rows carry little or no weight).
+    """
+    _check_inputs(points, normals, occlusion)
+    if not bandwidth > 0:
+        raise ValueError(f"bandwidth must be positive, got {bandwidth}")
+    n_pts = points.shape[0]
+    if neighbors is None:
+        neighbors = find_neighbors(points, k, backend=backend)
+    idx = neighbors.idx
+    if idx.shape[0] != n_pts:
+        raise ValueError(
+            f"neighbour list has {idx.shape[0]} rows but there are {n_pts} points; recompute it"
+        )
+    if idx.device != points.device:
+        idx = idx.to(points.device)
+
+    if covariance_weight not in ("squared", "linear"):
+        raise ValueError(
+            f"covariance_weight must be 'squared' or 'linear', got {covariance_weight!r}"
+        )
+    mod = _frames_kernel(points, pca_backend)
+    if mod is not None:
+        # dss/csrc/frames_cpu.cpp: the detached weights and frames in one pass per point, the
+        # differences with a scatter backward instead of torch's gather + index_put
+        idx = idx.long()
+        none = points.new_empty(0)
+        denom = max(1e-5, 1.0 - math.cos(sharpness_angle))
+        valid, psi, w, centroid, evals, evecs = mod.local_frames_forward(
+            points.detach(), idx, none if normals is None else normals.detach(),
+            none if occlusion is None else occlusion.detach(), (cutoff * bandwidth) ** 2,
+            1.0 / (bandwidth * bandwidth), int(min_neighbors), 1.0 / denom, covariance_weight == "squared")
+        diff = _NeighbourDiff.apply(points, idx, valid)
+        nrm = None  # only the few-neighbour fallback below needs the unit normals
+    else:
+        valid, diff, psi, w, centroid, evals, evecs, nrm = _frames_torch(
+            points, normals, occlusion, idx, bandwidth, sharpness_angle, covariance_weight, cutoff, min_neighbors)
+    with torch.no_grad():
         if normals is not None:
             few = valid.sum(1) < 3
-            has_n = nrm.norm(dim=-1) > 0.5
-            fb = few & has_n
-            if bool(fb.any()):
+            if bool(few.any()):
+                if nrm is None:
+                    nrm = F.normalize(normals.detach(), dim=-1)
+                fb = few & (nrm.norm(dim=-1) > 0.5)
                 evecs[fb] = _basis_from_normal(nrm[fb])[..., [2, 0, 1]]
-        normal_dir = evecs[..., 0]
+        # contiguous: a (N, 3) column view with stride 9 made every later reduction over xyz
+        # (F.normalize of the optimiser's "pca" point motion) ~15x slower
+        normal_dir = evecs[..., 0].contiguous()
         tangent = evecs[..., 1:3]
     return LocalFrames(
         idx=idx,
@@ -622,6 +695,7 @@ class _SurfaceRegularizer(torch.nn.Module):
             backend=self.config.knn_backend,
             cutoff=self.config.cutoff,
             min_neighbors=self.config.min_neighbors,
+            pca_backend=self.config.pca_backend,
         )
 
     def extra_repr(self) -> str:

@@ -83,13 +83,16 @@ def build(name: str, source_text: str, workdir: Path):
     """Build one revision's kernel source as module ``name`` with the package's flags."""
     from torch.utils.cpp_extension import load
 
-    from dss._ext import _BASE_CFLAGS, _OPENMP_FLAGS
+    from dss._ext import _BASE_CFLAGS, _CSRC, _OPENMP_FLAGS, CPU_SOURCES
 
     src = workdir / f"{name}.cpp"
     src.write_text(source_text)
     build_dir = workdir / f"build_{name}"
     build_dir.mkdir(exist_ok=True)
-    return load(name=name, sources=[str(src)], extra_cflags=_BASE_CFLAGS + _OPENMP_FLAGS,
+    # the working tree's other kernel sources, which dss_cpu.cpp's module table names (a base
+    # revision from before they existed simply does not use them)
+    extra = [str(_CSRC / f) for f in CPU_SOURCES if f != Path(SOURCE).name]
+    return load(name=name, sources=[str(src), *extra], extra_cflags=_BASE_CFLAGS + _OPENMP_FLAGS,
                 extra_ldflags=_OPENMP_FLAGS, build_directory=str(build_dir), verbose=False)
 
 

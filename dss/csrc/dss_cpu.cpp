@@ -1829,6 +1829,13 @@ torch::Tensor morton_order(torch::Tensor points) {
   return order;
 }
 
+// dss/csrc/frames_cpu.cpp (the regularisers' weighted PCA), compiled into this module
+std::vector<torch::Tensor> local_frames_forward(torch::Tensor points, torch::Tensor idx, torch::Tensor normals,
+                                                torch::Tensor occlusion, double lim2, double inv_d2,
+                                                int64_t min_neighbors, double inv_sharp, bool squared);
+torch::Tensor neighbor_diff_forward(torch::Tensor points, torch::Tensor idx, torch::Tensor valid);
+torch::Tensor neighbor_diff_backward(torch::Tensor grad, torch::Tensor idx, torch::Tensor valid, int64_t n_points);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
@@ -1845,4 +1852,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CPU)");
   m.def("sun_shade_forward", &sun_shade_forward, "sun-light shading (V,N,3) of (N,3) normals (CPU)");
   m.def("sun_shade_backward", &sun_shade_backward, "backward of sun_shade_forward (CPU)");
+  m.def("local_frames_forward", &local_frames_forward, "the regularisers' weighted PCA frames, detached (CPU)");
+  m.def("neighbor_diff_forward", &neighbor_diff_forward, "(p_i - p_k) over valid neighbours, (N,K,3) (CPU)");
+  m.def("neighbor_diff_backward", &neighbor_diff_backward, "backward of neighbor_diff_forward (CPU)");
 }
