@@ -536,6 +536,14 @@ def chamfer_floor(
     Samplings use seeds ``seed`` (the clean cloud C) and ``seed + 1`` (the "prediction"); both
     have ``n`` points. This is the best any method can score on that mesh at that density.
     """
+    return chamfer_floors(mesh, n, seed, (protocol,), with_mesh)[protocol]
+
+
+def chamfer_floors(
+    mesh: Any, n: int, seed: int = 0, protocols=PROTOCOLS, with_mesh: bool = True
+) -> dict[str, MetricsResult]:
+    """:func:`chamfer_floor` for several protocols from one pair of samplings (the samplings,
+    ~0.6 s each at 20K points, do not depend on the protocol)."""
     c = sample_poisson_disk(mesh, n, seed)
     p = sample_poisson_disk(mesh, n, seed + 1)
-    return evaluate(p, c, mesh if with_mesh else None, protocol)
+    return {pr: evaluate(p, c, mesh if with_mesh else None, pr) for pr in protocols}

@@ -563,9 +563,10 @@ def run(cfg: DictConfig) -> dict:
                         "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
-        from dss.metrics import chamfer_floor
+        from dss.metrics import chamfer_floors
 
-        floor = {pr: chamfer_floor(mesh, len(cloud_in), int(cfg.seed), pr, with_mesh=True).to_dict() for pr in protocols}
+        floors = chamfer_floors(mesh, len(cloud_in), int(cfg.seed), protocols, with_mesh=True)
+        floor = {pr: r.to_dict() for pr, r in floors.items()}
 
     rows = [(cloud_in.points, cloud_in.normals), (pts, nrm)]
     labels = ["noisy input", f"denoised ({generator.name})"]

@@ -203,6 +203,10 @@ def test_chamfer_floor_positive_and_small():
     assert r.point_to_mesh == pytest.approx(0.0, abs=1e-6)  # samples lie on the mesh
     r2 = M.chamfer_floor((v, f), n=400, seed=0, protocol="paper")
     assert r2.chamfer == pytest.approx(r.chamfer)  # seeded
+    both = M.chamfer_floors((v, f), n=400, seed=0)  # one pair of samplings for every protocol
+    assert set(both) == set(M.PROTOCOLS)
+    assert both["paper"].chamfer == pytest.approx(r.chamfer)
+    assert both["score"].to_dict() == M.chamfer_floor((v, f), n=400, seed=0, protocol="score").to_dict()
 
 
 @pytest.mark.skipif(not os.path.exists(SHARED_MESH), reason="shared data not available")
