@@ -17,9 +17,11 @@ Notation (all per point ``i`` and neighbour ``k``):
   caller; ``None`` means 0 for every point) and unit normals ``n`` (``None`` means theta = 1).
 * Weighted PCA: weighted mean ``c_i = sum_k w_ik p_k``. The paper takes the SVD of the
   weighted vectors ``w_ik (p_k - c_i)``; its right singular vectors are the eigenvectors of
-  ``C_i = sum_k w_ik^2 (p_k - c_i)(p_k - c_i)^T``, which we form directly and decompose with
-  batched :func:`torch.linalg.eigh` (a 3x3 ``eigh`` per point is much cheaper than an SVD of a
-  K x 3 matrix per point). ``covariance_weight="linear"`` uses the textbook
+  ``C_i = sum_k w_ik^2 (p_k - c_i)(p_k - c_i)^T``, which we form directly and decompose (a
+  3x3 ``eigh`` per point is much cheaper than an SVD of a K x 3 matrix per point): on the CPU
+  with the C++ kernel ``dss/csrc/frames_cpu.cpp`` (the weights, centroid, covariance and a 3x3
+  Jacobi in one pass per point), elsewhere with torch ops and batched :func:`torch.linalg.eigh`,
+  its twin (``pca_backend``). ``covariance_weight="linear"`` uses the textbook
   ``sum_k w_ik (...)(...)^T`` instead. The two eigenvectors with the largest eigenvalues span
   the tangent plane (``V~``), the smallest one is the normal direction (``V_n``).
 * Repulsion (paper)::

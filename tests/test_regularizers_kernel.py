@@ -199,3 +199,18 @@ def test_pca_backend_choice_is_checked():
     fr = term.frames(p)
     ref = local_frames(p, bandwidth=D, pca_backend="torch")
     assert torch.equal(fr.eigenvalues, ref.eigenvalues)
+
+
+def test_bench_regularizers_runs(tmp_path):
+    """The benchmark command behind docs/performance.md's regulariser numbers, at a small size."""
+    import json
+
+    from experiments.bench_regularizers import run
+
+    out = tmp_path / "reg.json"
+    res = run(["--points", "1500", "--reps", "2", "--threads", "1", "--out", str(out)])
+    (row,) = res["rows"]
+    assert row["points"] == 1500 and row["torch_ms"] > 0 and row["cpp_ms"] > 0
+    assert row["grad_rel_diff"] < 1e-4  # the two backends give the same gradient
+    assert row["grad_rel_err_vs_float64"]["cpp"] < 1e-4
+    assert json.loads(out.read_text())["rows"][0]["speedup"] == pytest.approx(row["speedup"])
