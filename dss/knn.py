@@ -146,6 +146,10 @@ def _drop_self(idx: torch.Tensor, dist: torch.Tensor, k: int) -> tuple[torch.Ten
     """
     n = idx.shape[0]
     rows = torch.arange(n, device=idx.device).unsqueeze(1)
+    if bool((idx[:, :1] == rows).all()):
+        # the usual case (no duplicates): every point is its own first neighbour. The masked
+        # selection below gives the same result but took ~90 ms at 100K x 17
+        return idx[:, 1:].contiguous(), dist[:, 1:].contiguous()
     is_self = idx == rows
     # Keep only the first self hit (there is at most one, but be safe).
     first = is_self & (is_self.long().cumsum(1) == 1)

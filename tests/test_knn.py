@@ -71,6 +71,26 @@ def test_exclude_self_with_duplicates(backend):
     assert (nb.dist[:6] == 0).all()
 
 
+def test_drop_self_fast_path_agrees_with_the_general_one():
+    """_drop_self slices off column 0 when every row starts with itself; a single row whose
+    self sits elsewhere sends the batch through the general masked path: same rows either way."""
+    from dss.knn import _drop_self
+
+    g = torch.Generator().manual_seed(0)
+    n, k = 200, 6
+    idx = torch.randint(0, n, (n, k + 1), generator=g)
+    idx[:, 0] = torch.arange(n)
+    idx[:, 1:][idx[:, 1:] == torch.arange(n)[:, None]] = -1  # no second self hit
+    dist = torch.rand(n, k + 1, generator=g).sort(1).values
+    fast = _drop_self(idx, dist, k)
+    assert torch.equal(fast[0], idx[:, 1:]) and torch.equal(fast[1], dist[:, 1:])
+    swapped = idx.clone()
+    swapped[0, [0, 3]] = swapped[0, [3, 0]]  # row 0: itself in column 3
+    general = _drop_self(swapped, dist, k)
+    assert torch.equal(general[0][1:], fast[0][1:]) and torch.equal(general[1][1:], fast[1][1:])
+    assert 0 not in general[0][0].tolist() and general[0].shape == (n, k)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_radius_neighbors(backend):
     g = torch.Generator().manual_seed(3)
