@@ -19,6 +19,7 @@ both versions alike because they alternate.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -59,6 +60,32 @@ def _run_child(repo: Path, ext_dir: Path, args, kind: str) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@contextlib.contextmanager
+def base_worktree(base: str, prefix: str):
+    """Check ``base`` out into a temporary git worktree (``../shared`` linked beside it, so both
+    versions see the same data); yields ``{"base": (repo, kernel cache dir), "work": (...)}``,
+    the working tree second, each with its own ``TORCH_EXTENSIONS_DIR``."""
+    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        tmp = Path(tmp)
+        base_repo = tmp / "repo"
+        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_repo), base], cwd=REPO, check=True)
+        shared = REPO.parent / "shared"
+        if shared.exists():
+            (tmp / "shared").symlink_to(shared)  # the kangaroo beside the worktree too, not a torus
+        try:
+            yield {"base": (base_repo, tmp / "ext_base"), "work": (REPO, tmp / "ext_work")}
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(base_repo)], cwd=REPO)
+
+
+def git_short(rev: str) -> str:
+    """The abbreviated commit of ``rev`` (exits with git's message when it does not resolve)."""
+    out = subprocess.run(["git", "rev-parse", "--short", rev], cwd=REPO, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"git rev-parse {rev} failed: {out.stderr.strip()}")
+    return out.stdout.strip()
+
+
 def run(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--base", help="git revision to compare the working tree with")
@@ -81,27 +108,15 @@ def run(argv=None) -> dict:
         ap.error("--base is required")
     if args.rounds < 1 or args.steps < 1:
         ap.error("--rounds and --steps must be at least 1")
-    rev = subprocess.run(["git", "rev-parse", "--short", args.base], cwd=REPO, capture_output=True, text=True)
-    if rev.returncode != 0:
-        raise SystemExit(f"git rev-parse {args.base} failed: {rev.stderr.strip()}")
-    with tempfile.TemporaryDirectory(prefix="dss_ab_steps_") as tmp:
-        tmp = Path(tmp)
-        base_repo = tmp / "repo"
-        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_repo), args.base], cwd=REPO, check=True)
-        shared = REPO.parent / "shared"
-        if shared.exists():
-            (tmp / "shared").symlink_to(shared)  # the kangaroo beside the worktree too, not a torus
-        try:
-            versions = {"base": (base_repo, tmp / "ext_base"), "work": (REPO, tmp / "ext_work")}
-            rounds: dict = {k: {v: [] for v in versions} for k in args.kinds}
-            for r in range(args.rounds):
-                for kind in args.kinds:
-                    for name, (repo, ext) in versions.items():
-                        rounds[kind][name].append(_run_child(repo, ext, args, kind))
-                    b, w = rounds[kind]["base"][-1]["step_ms"], rounds[kind]["work"][-1]["step_ms"]
-                    print(f"round {r + 1}/{args.rounds} {kind}: base {b:.1f} ms, working tree {w:.1f} ms", flush=True)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(base_repo)], cwd=REPO)
+    base_commit = git_short(args.base)
+    with base_worktree(args.base, "dss_ab_steps_") as versions:
+        rounds: dict = {k: {v: [] for v in versions} for k in args.kinds}
+        for r in range(args.rounds):
+            for kind in args.kinds:
+                for name, (repo, ext) in versions.items():
+                    rounds[kind][name].append(_run_child(repo, ext, args, kind))
+                b, w = rounds[kind]["base"][-1]["step_ms"], rounds[kind]["work"][-1]["step_ms"]
+                print(f"round {r + 1}/{args.rounds} {kind}: base {b:.1f} ms, working tree {w:.1f} ms", flush=True)
     summary = {}
     for kind, per in rounds.items():
         med = {name: {key: statistics.median(c[key] for c in per[name]) for key in ("forward_ms", "backward_ms", "step_ms")}
@@ -111,7 +126,7 @@ def run(argv=None) -> dict:
               f"{med['base']['forward_ms']:.1f} + {med['base']['backward_ms']:.1f} = {med['base']['step_ms']:.1f} ms, "
               f"working tree {med['work']['forward_ms']:.1f} + {med['work']['backward_ms']:.1f} = "
               f"{med['work']['step_ms']:.1f} ms, speed-up {summary[kind]['speedup']:.2f}x")
-    result = {"base": args.base, "base_commit": rev.stdout.strip(), "points": args.points, "views": args.views,
+    result = {"base": args.base, "base_commit": base_commit, "points": args.points, "views": args.views,
               "image_size": args.image_size, "threads": args.threads, "rounds": args.rounds, "warmup": args.warmup,
               "steps": args.steps, "summary": summary, "children": rounds,
               "command": "python -m experiments.ab_steps " + " ".join(sys.argv[1:] if argv is None else argv)}

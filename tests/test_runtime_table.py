@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -200,3 +201,40 @@ def test_measured_rates_are_peaks_of_repeated_calls():
     r = perf_counts.measure_rates(seconds=0.05)
     assert r["flops_per_s"] > 1e8
     assert r["bytes_per_s"] == max(r["copy_bytes_per_s_1thread"], r["copy_bytes_per_s_all_threads"]) > 1e8
+
+
+def test_ab_denoise_alternates_versions_and_reads_the_jobs_wall_time(monkeypatch, tmp_path):
+    """experiments.ab_denoise without running jobs: the overrides after -- reach both versions,
+    base and working tree alternate, and the medians and ratio come from the jobs' own lines."""
+    import contextlib
+    import subprocess
+
+    import experiments.ab_denoise as A
+
+    calls = []
+
+    @contextlib.contextmanager
+    def fake_worktree(base, prefix):
+        yield {"base": (tmp_path / "base", tmp_path / "eb"), "work": (tmp_path / "work", tmp_path / "ew")}
+
+    def fake_run(cmd, cwd, env, capture_output, text):
+        calls.append((Path(cwd).name, cmd))
+        n = len([c for c in calls if c[1] != "build"])
+        wall = 30.0 + n if Path(cwd).name == "base" else 10.0 + n
+        log = (f"[x][INFO] - wall time {wall:.1f} s; outputs in y\n"
+               "[paper protocol] Chamfer x1e4: input 1.467 -> denoised 0.326\n")
+        return subprocess.CompletedProcess(cmd, 0, stdout=log, stderr="")
+
+    monkeypatch.setattr(A, "base_worktree", fake_worktree)
+    monkeypatch.setattr(A, "git_short", lambda rev: "abc1234")
+    monkeypatch.setattr(A, "build_kernel", lambda repo, ext: calls.append((Path(repo).name, "build")))
+    monkeypatch.setattr(A.subprocess, "run", fake_run)
+    res = A.run(["--base", "HEAD~1", "--rounds", "3", "--out", str(tmp_path / "r.json"), "--", "noise=0.01"])
+    assert calls[:2] == [("base", "build"), ("work", "build")]  # both kernels built before timing
+    calls = calls[2:]
+    assert [c[0] for c in calls] == ["base", "work"] * 3
+    assert all(c[1][-1] == "noise=0.01" for c in calls)
+    assert res["median_wall_s"] == {"base": 33.0, "work": 14.0}  # runs 1/3/5 and 2/4/6
+    assert res["speedup"] == pytest.approx(33.0 / 14.0)
+    assert res["runs"]["work"][0]["chamfer_x1e4"]["paper"] == {"input": 1.467, "denoised": 0.326}
+    assert (tmp_path / "r.json").exists()
