@@ -17,9 +17,9 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).parent / "csrc"
-# The CPU module's sources: the renderer's kernels (whose module table also names the others) and
-# the regularisers' weighted PCA.
-CPU_SOURCES = ("dss_cpu.cpp", "frames_cpu.cpp")
+# The CPU module's sources: the renderer's kernels (whose module table also names the others), the
+# regularisers' weighted PCA and the kNN search.
+CPU_SOURCES = ("dss_cpu.cpp", "frames_cpu.cpp", "knn_cpu.cpp")
 _lock = threading.Lock()
 _cache: dict[str, object] = {}
 _failed: dict[str, str] = {}

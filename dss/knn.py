@@ -1,15 +1,21 @@
 """Nearest-neighbour search for point clouds that scales to ~1e5 points on a CPU.
 
-Two backends, one contract:
+Three backends, one contract:
 
+* ``"cpp"``: exact search on a uniform grid in C++ (``dss/csrc/knn_cpu.cpp``: reference points
+  bucketed by cell, queries visited in cell order, rings of cells scanned until the k-th best
+  distance is within them), all cores, 3D CPU points. Ties are ordered by index. About 1.6-2x
+  faster than cKDTree on 2 cores at 100K surface points (``python -m
+  experiments.bench_regularizers``).
 * ``"scipy"``: :class:`scipy.spatial.cKDTree` built on a detached float64 NumPy copy of the
   points and queried with ``workers=-1`` (all cores). O(N log N), no N x N matrix. Used for CPU
-  tensors.
+  tensors that are not 3D or when the C++ kernel does not build.
 * ``"torch"``: brute force with :func:`torch.cdist` over chunks of query rows followed by
   :func:`torch.topk`; memory is bounded by ``chunk_rows x M`` distances, never the whole
   N x M matrix. Used for GPU tensors (no host round trip) and for small CPU inputs.
 
-``backend="auto"`` picks ``torch`` for non-CPU tensors or when ``N*M`` is small, else ``scipy``.
+``backend="auto"`` picks ``torch`` for non-CPU tensors or when ``N*M`` is small, else ``cpp`` for
+3D points when the C++ kernel builds, else ``scipy``.
 
 Autograd: the search itself is not differentiable. The returned index tensors are integers
 and the returned distances are detached, so a neighbour *set* is a constant for autograd.
@@ -26,10 +32,13 @@ index ``-1`` and distance ``inf``. Rows are sorted by increasing distance.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from dss._ext import build_error, load_cpu
 
 logger = logging.getLogger(__name__)
 
@@ -68,16 +77,46 @@ def _check_points(points: torch.Tensor, name: str) -> None:
         raise TypeError(f"{name} must be floating point, got {points.dtype}")
 
 
+BACKENDS = ("auto", "cpp", "scipy", "torch")
+
+
 def _pick_backend(backend: str, ref: torch.Tensor, query: torch.Tensor) -> str:
-    if backend not in ("auto", "scipy", "torch"):
-        raise ValueError(f"unknown kNN backend {backend!r}; expected 'auto', 'scipy' or 'torch'")
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown kNN backend {backend!r}; expected one of {BACKENDS}")
+    if backend == "cpp" and (ref.shape[1] != 3 or ref.device.type != "cpu" or query.device.type != "cpu"):
+        raise ValueError(f"the cpp kNN backend takes 3D CPU points, got {tuple(ref.shape)} on {ref.device}")
     if backend != "auto":
         return backend
     if ref.device.type != "cpu":
         return "torch"
     if ref.shape[0] * query.shape[0] <= _SMALL_PAIRS:
         return "torch"
+    if ref.shape[1] == 3 and load_cpu() is not None:
+        return "cpp"
     return "scipy"
+
+
+def _as_finite_float64(points: torch.Tensor) -> np.ndarray:
+    a = points.detach().to("cpu", torch.float64).numpy()
+    if not np.isfinite(a).all():
+        raise ValueError("kNN input contains NaN or inf coordinates")
+    return a
+
+
+def _cpp_query(
+    ref: torch.Tensor,
+    query: torch.Tensor,
+    k: int,
+    radius: float | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    mod = load_cpu()
+    if mod is None:
+        raise RuntimeError(f"the cpp kNN backend needs the C++ kernel, which is unavailable: {build_error()}")
+    ref_np = _as_finite_float64(ref)
+    query_np = ref_np if query is ref else _as_finite_float64(query)
+    upper = math.inf if radius is None else float(radius)
+    idx, dist = mod.knn_grid(torch.from_numpy(ref_np), torch.from_numpy(query_np), int(k), upper)
+    return idx.to(query.device), dist.to(device=query.device, dtype=query.dtype)
 
 
 def _scipy_query(
@@ -88,10 +127,8 @@ def _scipy_query(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     from scipy.spatial import cKDTree
 
-    ref_np = ref.detach().to("cpu", torch.float64).numpy()
-    query_np = ref_np if query is ref else query.detach().to("cpu", torch.float64).numpy()
-    if not (np.isfinite(ref_np).all() and np.isfinite(query_np).all()):
-        raise ValueError("kNN input contains NaN or inf coordinates")
+    ref_np = _as_finite_float64(ref)
+    query_np = ref_np if query is ref else _as_finite_float64(query)
     m = ref_np.shape[0]
     tree = cKDTree(ref_np)
     upper = np.inf if radius is None else float(radius)
@@ -177,7 +214,8 @@ def knn(
         query: (N, D) query points; default ``points`` itself.
         exclude_self: only when ``query`` is None: drop point ``i`` from its own list (the
             result still has ``k`` columns).
-        backend: ``"auto"``, ``"scipy"`` (cKDTree, CPU) or ``"torch"`` (chunked brute force).
+        backend: ``"auto"``, ``"cpp"`` (grid, 3D CPU points), ``"scipy"`` (cKDTree, CPU) or
+            ``"torch"`` (chunked brute force).
         chunk_rows: query rows per brute-force chunk (torch backend); default keeps a chunk
             at about 16M distances.
 
@@ -202,6 +240,8 @@ def knn(
     which = _pick_backend(backend, points, q)
     if which == "scipy":
         idx, dist = _scipy_query(points, q, kq, None)
+    elif which == "cpp":
+        idx, dist = _cpp_query(points, q, kq, None)
     else:
         idx, dist = _torch_query(points, q, kq, None, chunk_rows)
     if exclude_self:
@@ -239,6 +279,8 @@ def radius_neighbors(
     which = _pick_backend(backend, points, q)
     if which == "scipy":
         idx, dist = _scipy_query(points, q, kq, float(radius))
+    elif which == "cpp":
+        idx, dist = _cpp_query(points, q, kq, float(radius))
     else:
         idx, dist = _torch_query(points, q, kq, float(radius), chunk_rows)
     if exclude_self:

@@ -166,7 +166,7 @@ class RegularizerConfig:
         eps: repulsion's ``1e-4`` in ``psi / (d^2 + eps)``.
         projection_mode: ``"paper"`` or ``"point_to_plane"`` (see module docstring).
         covariance_weight: ``"squared"`` (paper: SVD of w-weighted vectors) or ``"linear"``.
-        knn_backend: ``"auto"``, ``"scipy"`` or ``"torch"`` (see :mod:`dss.knn`).
+        knn_backend: ``"auto"``, ``"cpp"``, ``"scipy"`` or ``"torch"`` (see :mod:`dss.knn`).
         pca_backend: ``"auto"``, ``"cpp"`` or ``"torch"``: the weighted PCA's implementation
             (see :func:`local_frames`).
         cutoff: neighbourhood radius as a multiple of ``D`` (paper: 1, neighbours within ``D``;

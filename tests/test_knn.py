@@ -5,7 +5,7 @@ import torch
 
 from dss.knn import gather_neighbors, knn, radius_neighbors
 
-BACKENDS = ["scipy", "torch"]
+BACKENDS = ["cpp", "scipy", "torch"]
 
 
 def _brute(points, query, k):
@@ -134,3 +134,86 @@ def test_knn_on_gpu_stays_on_device():
     assert nb.idx.device.type == "cuda"
     ref = knn(pts.cpu(), 5, exclude_self=True, backend="scipy")
     assert torch.equal(nb.idx.cpu(), ref.idx)
+
+
+def _sphere(n, seed=0, noise=0.0):
+    g = torch.Generator().manual_seed(seed)
+    p = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    p = p / p.norm(dim=1, keepdim=True)
+    return p + noise * torch.randn(n, 3, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize(
+    "shape",
+    ["noisy_sphere", "flat", "line", "far_queries", "clustered"],
+)
+@pytest.mark.parametrize("k", [1, 17, 65])
+def test_cpp_grid_knn_matches_the_kd_tree(shape, k):
+    """The grid search (dss/csrc/knn_cpu.cpp) against cKDTree on clouds where a uniform grid is
+    a poor fit: a surface, a plane and a line (axes without extent), queries far outside the
+    grid, two dense clusters far apart. Same distances; the same indices (continuous random
+    coordinates: no ties)."""
+    g = torch.Generator().manual_seed(1)
+    if shape == "noisy_sphere":
+        pts, qry = _sphere(6000, noise=0.01), None
+    elif shape == "flat":
+        pts, qry = torch.cat([torch.rand(4000, 2, generator=g, dtype=torch.float64),
+                              torch.zeros(4000, 1, dtype=torch.float64)], 1), None
+    elif shape == "line":
+        pts, qry = torch.rand(3000, 1, generator=g, dtype=torch.float64) * torch.tensor([[1.0, 2.0, -1.0]]), None
+    elif shape == "far_queries":
+        pts = _sphere(3000)
+        qry = 5.0 * torch.randn(500, 3, generator=g, dtype=torch.float64)
+    else:
+        a = 0.01 * torch.randn(2500, 3, generator=g, dtype=torch.float64)
+        pts, qry = torch.cat([a, a[:1500] + 10.0]), None
+    want = knn(pts, k, qry, exclude_self=qry is None, backend="scipy")
+    got = knn(pts, k, qry, exclude_self=qry is None, backend="cpp")
+    assert torch.equal(got.dist, want.dist)
+    assert torch.equal(got.idx, want.idx)
+
+
+def test_cpp_grid_knn_radius_padding_and_ties():
+    """Radius limits (inclusive, padding -1 / inf), k larger than the cloud, an empty result and
+    a regular grid full of exact ties (ordered by index, the distances as cKDTree's)."""
+    pts = _sphere(2000)
+    r = 0.05
+    want = radius_neighbors(pts, r, 40, exclude_self=True, backend="scipy")
+    got = radius_neighbors(pts, r, 40, exclude_self=True, backend="cpp")
+    assert torch.equal(got.idx, want.idx) and torch.equal(got.dist, want.dist)
+    small = pts[:5]
+    nb = knn(small, 8, backend="cpp")
+    assert (nb.idx[:, 5:] == -1).all() and torch.isinf(nb.dist[:, 5:]).all()
+    assert (nb.idx[:, 0] == torch.arange(5)).all()
+    far = radius_neighbors(pts, 1e-9, 3, query=pts[:4] + 5.0, backend="cpp")
+    assert (far.idx == -1).all()
+    ij = torch.stack(torch.meshgrid(torch.arange(30.0), torch.arange(30.0), indexing="ij"), -1).reshape(-1, 2)
+    grid = torch.cat([ij, torch.zeros(900, 1)], 1).double() * 0.05
+    a = knn(grid, 8, backend="cpp")
+    b = knn(grid, 8, backend="scipy")
+    assert torch.equal(a.dist, b.dist)
+    diff = grid[:, None] - grid[a.idx]
+    d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + diff[..., 2] ** 2  # the kernel's order
+    assert torch.equal(d2.sqrt(), a.dist)  # the indices hold the reported distances
+    ties = d2[:, 1:] == d2[:, :-1]  # exact ties of the squared distance (not of its square root)
+    assert ties.any() and (a.idx[:, 1:][ties] > a.idx[:, :-1][ties]).all()
+
+
+def test_cpp_grid_knn_does_not_depend_on_the_thread_count():
+    pts = _sphere(20000, noise=0.01).float()
+    before = torch.get_num_threads()
+    try:
+        out = []
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            out.append(knn(pts, 16, exclude_self=True, backend="cpp"))
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(out[0].idx, out[1].idx) and torch.equal(out[0].dist, out[1].dist)
+
+
+def test_cpp_knn_backend_refuses_what_it_cannot_search():
+    with pytest.raises(ValueError, match="3D CPU"):
+        knn(torch.rand(50, 2), 3, backend="cpp")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        knn(torch.tensor([[0.0, 0, 0], [1, float("nan"), 0], [2, 0, 0]]), 1, backend="cpp")

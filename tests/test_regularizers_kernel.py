@@ -214,3 +214,4 @@ def test_bench_regularizers_runs(tmp_path):
     assert row["grad_rel_diff"] < 1e-4  # the two backends give the same gradient
     assert row["grad_rel_err_vs_float64"]["cpp"] < 1e-4
     assert json.loads(out.read_text())["rows"][0]["speedup"] == pytest.approx(row["speedup"])
+    assert [r["k"] for r in res["knn"]] == [16, 64] and all(r["identical"] for r in res["knn"])

@@ -1829,12 +1829,14 @@ torch::Tensor morton_order(torch::Tensor points) {
   return order;
 }
 
-// dss/csrc/frames_cpu.cpp (the regularisers' weighted PCA), compiled into this module
+// the other sources compiled into this module: dss/csrc/frames_cpu.cpp (the regularisers' weighted PCA)
 std::vector<torch::Tensor> local_frames_forward(torch::Tensor points, torch::Tensor idx, torch::Tensor normals,
                                                 torch::Tensor occlusion, double lim2, double inv_d2,
                                                 int64_t min_neighbors, double inv_sharp, bool squared);
 torch::Tensor neighbor_diff_forward(torch::Tensor points, torch::Tensor idx, torch::Tensor valid);
 torch::Tensor neighbor_diff_backward(torch::Tensor grad, torch::Tensor idx, torch::Tensor valid, int64_t n_points);
+// dss/csrc/knn_cpu.cpp
+std::vector<torch::Tensor> knn_grid(torch::Tensor ref, torch::Tensor query, int64_t k, double radius);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
@@ -1855,4 +1857,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("local_frames_forward", &local_frames_forward, "the regularisers' weighted PCA frames, detached (CPU)");
   m.def("neighbor_diff_forward", &neighbor_diff_forward, "(p_i - p_k) over valid neighbours, (N,K,3) (CPU)");
   m.def("neighbor_diff_backward", &neighbor_diff_backward, "backward of neighbor_diff_forward (CPU)");
+  m.def("knn_grid", &knn_grid, "exact k nearest 3D neighbours on a uniform grid (CPU)");
 }
