@@ -4,7 +4,7 @@ Three backends, one contract:
 
 * ``"cpp"``: exact search on a uniform grid in C++ (``dss/csrc/knn_cpu.cpp``: reference points
   bucketed by cell, queries visited in cell order, rings of cells scanned until the k-th best
-  distance is within them), all cores, 3D CPU points. Ties are ordered by index. About 1.6-2x
+  distance is within them), all cores, 3D CPU points. Ties are ordered by index. About 1.7-2x
   faster than cKDTree on 2 cores at 100K surface points (``python -m
   experiments.bench_regularizers``).
 * ``"scipy"``: :class:`scipy.spatial.cKDTree` built on a detached float64 NumPy copy of the

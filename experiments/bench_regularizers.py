@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -121,7 +122,8 @@ def run(argv=None) -> dict:
               f"({r['speedup']:.2f}x); gradients differ by {r['grad_rel_diff']:.1e} (relative), from the float64 "
               f"result by {r['grad_rel_err_vs_float64']['torch']:.1e} (torch) / "
               f"{r['grad_rel_err_vs_float64']['cpp']:.1e} (cpp)")
-    result = {"threads": args.threads, "reps": args.reps, "rows": rows, "knn": knn_rows}
+    result = {"threads": args.threads, "reps": args.reps, "rows": rows, "knn": knn_rows,
+              "command": "python -m experiments.bench_regularizers " + " ".join(sys.argv[1:] if argv is None else argv)}
     if args.out:
         from dss.io_utils import atomic_write_json
 

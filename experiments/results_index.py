@@ -235,6 +235,16 @@ def _describe(d: dict) -> str:
         return "renderer timings: " + "; ".join(
             f"{r['points']} points forward C++ {_fmt(r.get('cpp_forward_ms'), 3)} ms (x{_fmt(r.get('speedup'), 3)} the reference)"
             for r in d["forward"])
+    if isinstance(d.get("median_wall_s"), dict) and "speedup" in d:  # experiments.ab_denoise
+        m = d["median_wall_s"]
+        return (f"dss-denoise wall time, medians of {d.get('rounds', '?')} alternating rounds: base "
+                f"{d.get('base_commit', d.get('base', '?'))} {_fmt(m.get('base'), 3)} s, working tree "
+                f"{_fmt(m.get('work'), 3)} s ({_fmt(d['speedup'], 3)}x)")
+    if isinstance(d.get("rows"), list) and isinstance(d.get("knn"), list):  # experiments.bench_regularizers
+        return "regularisers per step, torch / C++ (ms): " + "; ".join(
+            f"{r['points']} points {_fmt(r['torch_ms'], 3)} / {_fmt(r['cpp_ms'], 3)}" for r in d["rows"]) + \
+            "; kNN cKDTree / C++ (ms): " + "; ".join(
+            f"{r['points']} points k={r['k']} {_fmt(r['scipy_ms'], 3)} / {_fmt(r['cpp_ms'], 3)}" for r in d["knn"])
     for key in ("title", "what", "figure", "note"):
         if isinstance(d.get(key), str):
             return d[key].split("\n")[0][:160]
