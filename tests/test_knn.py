@@ -187,6 +187,8 @@ def test_cpp_grid_knn_radius_padding_and_ties():
     assert (nb.idx[:, 0] == torch.arange(5)).all()
     far = radius_neighbors(pts, 1e-9, 3, query=pts[:4] + 5.0, backend="cpp")
     assert (far.idx == -1).all()
+    huge = torch.tensor([[1e300, 0.0, 0.0], [-1e300, 1e300, 0.0]], dtype=torch.float64)  # cells beyond int64
+    assert torch.equal(knn(pts, 3, huge, backend="cpp").idx, knn(pts, 3, huge, backend="scipy").idx)
     ij = torch.stack(torch.meshgrid(torch.arange(30.0), torch.arange(30.0), indexing="ij"), -1).reshape(-1, 2)
     grid = torch.cat([ij, torch.zeros(900, 1)], 1).double() * 0.05
     a = knn(grid, 8, backend="cpp")

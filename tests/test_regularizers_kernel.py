@@ -194,6 +194,15 @@ def test_pca_backend_choice_is_checked():
         local_frames(p.half(), bandwidth=D, neighbors=find_neighbors(p, 8), pca_backend="cpp")
     with pytest.raises(ValueError, match="pca_backend"):
         RegularizerConfig(pca_backend="fast")
+    # a neighbour list that names rows these points do not have is refused, not read out of bounds
+    from dss.knn import Neighbors
+
+    nb = find_neighbors(p, 4)
+    for wrong in (p.shape[0], -2):
+        idx = nb.idx.clone()
+        idx[3, 1] = wrong
+        with pytest.raises(RuntimeError, match="neighbour indices"):
+            local_frames(p, bandwidth=D, neighbors=Neighbors(idx=idx, dist=nb.dist), pca_backend="cpp")
     # the modules pass their config's choice through (torch: the twin, not the kernel)
     term = ProjectionLoss(RegularizerConfig(pca_backend="torch"), bandwidth=D)
     fr = term.frames(p)

@@ -207,6 +207,15 @@ void check_points(const torch::Tensor& points, const torch::Tensor& idx) {
   TORCH_CHECK(!points.is_cuda() && !idx.is_cuda(), "CPU tensors only");
 }
 
+// Neighbour indices must be -1 (none) or a point's row: the kernels read those rows unchecked.
+void check_indices(const torch::Tensor& idx, int64_t n_points) {
+  const int64_t* I = idx.data_ptr<int64_t>();
+  const int64_t n = idx.numel();
+  bool ok = true;
+  for (int64_t e = 0; e < n; ++e) ok &= I[e] >= -1 && I[e] < n_points;
+  TORCH_CHECK(ok, "neighbour indices must be -1 or in [0, ", n_points, "): the neighbour list is not for these points");
+}
+
 }  // namespace
 
 // local_frames' detached part: returns (valid (N,K) bool, psi (N,K), w (N,K), centroid (N,3),
@@ -220,6 +229,7 @@ std::vector<torch::Tensor> local_frames_forward(torch::Tensor points, torch::Ten
   points = points.contiguous();
   idx = idx.contiguous();
   const int64_t N = points.size(0), K = idx.size(1);
+  check_indices(idx, N);
   const bool has_n = normals.numel() > 0, has_o = occlusion.numel() > 0;
   if (has_n) {
     TORCH_CHECK(normals.dim() == 2 && normals.size(0) == N && normals.size(1) == 3, "normals must be (N, 3)");
@@ -248,10 +258,12 @@ std::vector<torch::Tensor> local_frames_forward(torch::Tensor points, torch::Ten
 // values of torch's (points[:, None] - points[idx.clamp(min=0)]) * valid.
 torch::Tensor neighbor_diff_forward(torch::Tensor points, torch::Tensor idx, torch::Tensor valid) {
   check_points(points, idx);
+  TORCH_CHECK(valid.sizes() == idx.sizes() && valid.scalar_type() == torch::kBool, "valid must be (N, K) bool like idx");
   points = points.contiguous();
   idx = idx.contiguous();
   valid = valid.contiguous();
   const int64_t N = points.size(0), K = idx.size(1);
+  check_indices(idx, N);
   auto out = torch::empty({N, K, 3}, points.options());
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "neighbor_diff_forward", [&] {
     const scalar_t* P = points.data_ptr<scalar_t>();

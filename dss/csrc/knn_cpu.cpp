@@ -27,7 +27,8 @@ struct Grid {
   int64_t axis_cell(int a, double x) const {
     const double f = std::floor((x - lo[a]) / h);
     if (!(f >= 0)) return 0;  // also NaN (refused by the caller)
-    return std::min<int64_t>(n[a] - 1, (int64_t)f);
+    if (f >= (double)(n[a] - 1)) return n[a] - 1;  // before the cast: far queries overflow int64
+    return (int64_t)f;
   }
   int64_t cell_of(const double* p, int64_t c[3]) const {
     for (int a = 0; a < 3; ++a) c[a] = axis_cell(a, p[a]);
@@ -36,7 +37,8 @@ struct Grid {
 };
 
 // Cell size: about `per_cell` reference points per cell if they filled the bounding box (axes
-// without extent do not count); at most ~4M cells.
+// thinner than 1e-3 of the longest do not count: a plane is bucketed in 2D); at most 4 M + 64
+// cells for M points.
 Grid make_grid(const double* R, int64_t M, int64_t per_cell) {
   Grid g;
   double hi[3];
@@ -53,7 +55,7 @@ Grid make_grid(const double* R, int64_t M, int64_t per_cell) {
     span = std::max(span, ext[a]);
   }
   for (int a = 0; a < 3; ++a)
-    if (ext[a] > 1e-9 * span) {
+    if (ext[a] > 1e-3 * span) {
       vol *= ext[a];
       ++dims;
     }
@@ -65,7 +67,7 @@ Grid make_grid(const double* R, int64_t M, int64_t per_cell) {
       g.n[a] = std::max<int64_t>(1, (int64_t)std::ceil(ext[a] / g.h));
       cells *= (double)g.n[a];
     }
-    if (cells <= 4.0e6) break;
+    if (cells <= 4.0 * (double)M + 64.0) break;
     g.h *= 1.5;
   }
   const int64_t C = g.n[0] * g.n[1] * g.n[2];
@@ -133,7 +135,9 @@ std::vector<torch::Tensor> knn_grid(torch::Tensor ref, torch::Tensor query, int6
   // points, and the rings stop close to the k-th neighbour (measured at 100K surface points:
   // 1 best for k = 64, 1-2 for k = 16; 8 was 1.3-1.9x slower)
   const Grid g = make_grid(R, M, 1);
-  const double r2max = radius * radius;  // inf when unbounded
+  // squared radius; unbounded: the largest finite double, so that a distance that overflows to
+  // inf counts as no neighbour (index -1), as in cKDTree
+  const double r2max = std::min(radius * radius, std::numeric_limits<double>::max());
   // queries in cell order (a counting sort of their cells)
   const int64_t C = g.n[0] * g.n[1] * g.n[2];
   std::vector<int64_t> qcell((size_t)N), qstart((size_t)C + 1, 0), qorder((size_t)N);
