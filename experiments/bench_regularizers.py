@@ -81,7 +81,8 @@ def time_backends(points: torch.Tensor, reps: int, k: int = 16) -> dict:
 
 def time_knn(points: torch.Tensor, reps: int, ks=(16, 64)) -> list[dict]:
     """Median ms of one neighbour search (self excluded, as the optimiser refreshes them once per
-    cycle; 64 = 16 x the dilation 4 used at 2% noise) with cKDTree and the C++ grid, alternating."""
+    cycle: 16 neighbours x a dilation of round(N / 20000), so 16 at 20K and 80 at 100K points;
+    64 stands for a dilated list) with cKDTree and the C++ grid, alternating."""
     from dss.knn import knn
 
     rows = []
