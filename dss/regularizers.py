@@ -435,7 +435,7 @@ class _NeighbourDiff(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad):
         idx, valid = ctx.saved_tensors
-        return load_cpu().neighbor_diff_backward(grad, idx, valid, idx.shape[0]), None, None
+        return load_cpu().neighbor_diff_backward(grad, idx, valid), None, None
 
 
 def _frames_torch(points, normals, occlusion, idx, bandwidth, sharpness_angle, covariance_weight, cutoff,

@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from experiments.ab_steps import base_worktree, git_short
+from experiments.bench_common import base_worktree, git_short, main_for, write_result
 
 WALL = re.compile(r"wall time ([0-9.]+) s")
 CHAMFER = re.compile(r"\[(\w+) protocol\] Chamfer x1e4: input ([0-9.]+) -> denoised ([0-9.]+)")
@@ -87,16 +87,10 @@ def run(argv=None) -> dict:
     result = {"base": args.base, "base_commit": base_commit, "threads": args.threads, "rounds": args.rounds,
               "overrides": overrides, "median_wall_s": med, "speedup": speedup, "runs": runs,
               "command": "python -m experiments.ab_denoise " + " ".join(argv)}
-    if args.out:
-        from dss.io_utils import atomic_write_json
-
-        atomic_write_json(args.out, result)
-    return result
+    return write_result(result, args.out)
 
 
-def main(argv=None) -> int:
-    run(argv)
-    return 0
+main = main_for(run)
 
 
 if __name__ == "__main__":

@@ -20,14 +20,15 @@ from __future__ import annotations
 import argparse
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+from experiments.bench_common import REPO, main_for, write_result
+from experiments.figures import command_line
+
 SOURCE = "dss/csrc/dss_cpu.cpp"
 KERNELS = ("rasterize_forward", "visibility_backward", "blend_backward", "project_splats_forward",
            "project_splats_backward")
@@ -151,19 +152,13 @@ def run(argv=None) -> dict:
               "window": call_args[VIS_WINDOW_ARG] if args.kernel == "visibility_backward" else None,
               "views": args.views, "image_size": args.image_size, "threads": args.threads,
               "median_ms": med, "speedup": med["base"] / med["work"], "runs_ms": times,
-              "command": "python -m experiments.ab_kernels " + " ".join(sys.argv[1:] if argv is None else argv)}
+              "command": command_line("python -m experiments.ab_kernels", argv)}
     print(f"{args.kernel}, {args.points} points, {args.threads} thread(s): base {args.base} {med['base']:.2f} ms, "
           f"working tree {med['work']:.2f} ms, speed-up {result['speedup']:.2f}x")
-    if args.out:
-        from dss.io_utils import atomic_write_json
-
-        atomic_write_json(args.out, result)
-    return result
+    return write_result(result, args.out)
 
 
-def main(argv=None) -> int:
-    run(argv)
-    return 0
+main = main_for(run)
 
 
 if __name__ == "__main__":

@@ -19,16 +19,15 @@ both versions alike because they alternate.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import statistics
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from experiments.bench_common import base_worktree, git_short, main_for, write_result
+from experiments.figures import command_line
 
 
 def child(kind: str, n_points: int, views: int, size: int, threads: int, warmup: int, steps: int) -> dict:
@@ -58,32 +57,6 @@ def _run_child(repo: Path, ext_dir: Path, args, kind: str) -> dict:
     if out.returncode != 0:
         raise SystemExit(f"child for {repo} ({kind}) failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
-
-
-@contextlib.contextmanager
-def base_worktree(base: str, prefix: str):
-    """Check ``base`` out into a temporary git worktree (``../shared`` linked beside it, so both
-    versions see the same data); yields ``{"base": (repo, kernel cache dir), "work": (...)}``,
-    the working tree second, each with its own ``TORCH_EXTENSIONS_DIR``."""
-    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
-        tmp = Path(tmp)
-        base_repo = tmp / "repo"
-        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_repo), base], cwd=REPO, check=True)
-        shared = REPO.parent / "shared"
-        if shared.exists():
-            (tmp / "shared").symlink_to(shared)  # the kangaroo beside the worktree too, not a torus
-        try:
-            yield {"base": (base_repo, tmp / "ext_base"), "work": (REPO, tmp / "ext_work")}
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(base_repo)], cwd=REPO)
-
-
-def git_short(rev: str) -> str:
-    """The abbreviated commit of ``rev`` (exits with git's message when it does not resolve)."""
-    out = subprocess.run(["git", "rev-parse", "--short", rev], cwd=REPO, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise SystemExit(f"git rev-parse {rev} failed: {out.stderr.strip()}")
-    return out.stdout.strip()
 
 
 def run(argv=None) -> dict:
@@ -129,17 +102,11 @@ def run(argv=None) -> dict:
     result = {"base": args.base, "base_commit": base_commit, "points": args.points, "views": args.views,
               "image_size": args.image_size, "threads": args.threads, "rounds": args.rounds, "warmup": args.warmup,
               "steps": args.steps, "summary": summary, "children": rounds,
-              "command": "python -m experiments.ab_steps " + " ".join(sys.argv[1:] if argv is None else argv)}
-    if args.out:
-        from dss.io_utils import atomic_write_json
-
-        atomic_write_json(args.out, result)
-    return result
+              "command": command_line("python -m experiments.ab_steps", argv)}
+    return write_result(result, args.out)
 
 
-def main(argv=None) -> int:
-    run(argv)
-    return 0
+main = main_for(run)
 
 
 if __name__ == "__main__":

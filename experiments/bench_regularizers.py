@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from experiments.bench_common import main_for, write_result
+from experiments.figures import command_line
 
 ASSETS = Path(__file__).resolve().parent / "assets" / "example"
 
@@ -124,17 +126,11 @@ def run(argv=None) -> dict:
               f"result by {r['grad_rel_err_vs_float64']['torch']:.1e} (torch) / "
               f"{r['grad_rel_err_vs_float64']['cpp']:.1e} (cpp)")
     result = {"threads": args.threads, "reps": args.reps, "rows": rows, "knn": knn_rows,
-              "command": "python -m experiments.bench_regularizers " + " ".join(sys.argv[1:] if argv is None else argv)}
-    if args.out:
-        from dss.io_utils import atomic_write_json
-
-        atomic_write_json(args.out, result)
-    return result
+              "command": command_line("python -m experiments.bench_regularizers", argv)}
+    return write_result(result, args.out)
 
 
-def main(argv=None) -> int:
-    run(argv)
-    return 0
+main = main_for(run)
 
 
 if __name__ == "__main__":

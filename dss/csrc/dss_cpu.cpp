@@ -1834,7 +1834,7 @@ std::vector<torch::Tensor> local_frames_forward(torch::Tensor points, torch::Ten
                                                 torch::Tensor occlusion, double lim2, double inv_d2,
                                                 int64_t min_neighbors, double inv_sharp, bool squared);
 torch::Tensor neighbor_diff_forward(torch::Tensor points, torch::Tensor idx, torch::Tensor valid);
-torch::Tensor neighbor_diff_backward(torch::Tensor grad, torch::Tensor idx, torch::Tensor valid, int64_t n_points);
+torch::Tensor neighbor_diff_backward(torch::Tensor grad, torch::Tensor idx, torch::Tensor valid);
 // dss/csrc/knn_cpu.cpp
 std::vector<torch::Tensor> knn_grid(torch::Tensor ref, torch::Tensor query, int64_t k, double radius);
 

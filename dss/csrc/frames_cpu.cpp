@@ -289,14 +289,13 @@ torch::Tensor neighbor_diff_forward(torch::Tensor points, torch::Tensor idx, tor
 // Backward of neighbor_diff_forward: dL/dp_i = sum_k g[i,k] - sum_{(m,k): idx[m,k] = i} g[m,k]
 // over valid entries. The first sum runs per point in parallel; the second is a scatter, run on
 // one thread in (m, k) order so the result does not depend on the thread count.
-torch::Tensor neighbor_diff_backward(torch::Tensor grad, torch::Tensor idx, torch::Tensor valid, int64_t n_points) {
+torch::Tensor neighbor_diff_backward(torch::Tensor grad, torch::Tensor idx, torch::Tensor valid) {
   TORCH_CHECK(grad.dim() == 3 && grad.size(2) == 3 && grad.size(0) == idx.size(0) && grad.size(1) == idx.size(1),
               "grad must be (N, K, 3) like the neighbour list");
   grad = grad.contiguous();
   idx = idx.contiguous();
   valid = valid.contiguous();
-  const int64_t N = idx.size(0), K = idx.size(1);
-  TORCH_CHECK(n_points == N, "one neighbour row per point");
+  const int64_t N = idx.size(0), K = idx.size(1);  // one neighbour row per point
   auto out = torch::empty({N, 3}, grad.options());
   AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "neighbor_diff_backward", [&] {
     const scalar_t* G = grad.data_ptr<scalar_t>();

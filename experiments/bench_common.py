@@ -1,0 +1,57 @@
+"""What the benchmark commands share (``ab_steps``, ``ab_kernels``, ``ab_denoise``,
+``bench_regularizers``): a base revision checked out beside the working tree, the JSON result
+written where ``--out`` says, and their ``main``."""
+
+from __future__ import annotations
+
+import contextlib
+import subprocess
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def base_worktree(base: str, prefix: str):
+    """Check ``base`` out into a temporary git worktree (``../shared`` linked beside it, so both
+    versions see the same data); yields ``{"base": (repo, kernel cache dir), "work": (...)}``,
+    the working tree second, each with its own ``TORCH_EXTENSIONS_DIR``."""
+    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        tmp = Path(tmp)
+        base_repo = tmp / "repo"
+        subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_repo), base], cwd=REPO, check=True)
+        shared = REPO.parent / "shared"
+        if shared.exists():
+            (tmp / "shared").symlink_to(shared)  # the kangaroo beside the worktree too, not a torus
+        try:
+            yield {"base": (base_repo, tmp / "ext_base"), "work": (REPO, tmp / "ext_work")}
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(base_repo)], cwd=REPO)
+
+
+def git_short(rev: str) -> str:
+    """The abbreviated commit of ``rev`` (exits with git's message when it does not resolve)."""
+    out = subprocess.run(["git", "rev-parse", "--short", rev], cwd=REPO, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"git rev-parse {rev} failed: {out.stderr.strip()}")
+    return out.stdout.strip()
+
+
+def write_result(result: dict, out) -> dict:
+    """Write ``result`` atomically as JSON to ``out`` (nothing when ``out`` is None); returns it."""
+    if out:
+        from dss.io_utils import atomic_write_json
+
+        atomic_write_json(out, result)
+    return result
+
+
+def main_for(run):
+    """The ``main(argv=None) -> 0`` of a command whose ``run(argv)`` prints and writes its result."""
+
+    def main(argv=None) -> int:
+        run(argv)
+        return 0
+
+    return main
