@@ -2,9 +2,10 @@
 
 Stages (each usable on its own):
 1. :func:`dss.splats.project_splats` — points + normals -> screen-space EWA splats (torch; the
-   ``cpp`` backend runs its C++ twin in both directions, :class:`_CppProject`).
+   ``cpp`` and ``cuda`` backends run its kernel twin in both directions, :class:`_KernelProject`).
 2. a rasteriser backend — splats -> per-pixel top-K cache (:class:`Fragments`), and the image
-   when no gradient is needed (``reference``: pure torch; ``cpp``: C++/OpenMP kernel).
+   when no gradient is needed (``reference``: pure torch; ``cpp``: C++/OpenMP kernel; ``cuda``:
+   tile-binned CUDA kernels, the same formulas).
 3. :func:`dss.shading.shade` — per-view point attributes w_k (torch).
 4. blending (Eq. sumI). With gradients enabled, the weights of the visible cached fragments are
    recomputed with differentiable torch ops, so autograd supplies the smooth terms of Eqs. gradN
@@ -149,6 +150,27 @@ class RenderOutput:
         return self._in_caller_order()[2]
 
 
+class _PermuteRows(torch.autograd.Function):
+    """``x[order]`` for a permutation ``order`` (N,); the backward scatters each row back once.
+
+    Autograd's own backward of ``x[order]`` is an index_put with accumulation, which on a GPU
+    sorts the indices first (two radix sorts and a dozen launches per tensor per step); a
+    permutation hits every row exactly once, so a plain scatter gives the same values.
+    """
+
+    @staticmethod
+    def forward(ctx, x, order):
+        ctx.save_for_backward(order)
+        return x[order]
+
+    @staticmethod
+    def backward(ctx, grad):
+        (order,) = ctx.saved_tensors
+        out = torch.empty_like(grad)
+        out[order] = grad
+        return out, None
+
+
 def resolve_backend(backend: str, device: torch.device | None = None) -> str:
     """Pick a concrete backend: "auto" -> the fastest available for ``device``."""
     if backend not in BACKENDS:
@@ -174,13 +196,18 @@ def resolve_backend(backend: str, device: torch.device | None = None) -> str:
     return backend
 
 
+def _kernels(backend: str):
+    """The compiled module of a kernel backend ("cpp" or "cuda"); same function names."""
+    return _ext.load_cpu() if backend == "cpp" else _ext_cuda.load_cuda()
+
+
 def rasterize(splats: Splats, image_size, K: int, cutoff: float, merge_threshold: float, backend: str,
               attributes: torch.Tensor | None = None, background: torch.Tensor | None = None):
     """Stage 2: top-K cache, plus the blended image/mask when ``attributes`` is given."""
     packed = splats.packed.detach()
     H, W = image_size
     if backend in ("cpp", "cuda"):
-        mod = _ext.load_cpu() if backend == "cpp" else _ext_cuda.load_cuda()
+        mod = _kernels(backend)
         dev = packed.device
         attrs = attributes.detach().float() if attributes is not None else torch.empty(0, device=dev)
         bg = background if background is not None else torch.zeros(attrs.shape[-1] if attrs.numel() else 0, device=dev)
@@ -215,8 +242,7 @@ def _blend_differentiable(frags: Fragments, splats: Splats, attributes: torch.Te
 def _visibility_grad(o: dict, packed, attrs, idx, depth, rho, images, grad, R, t, focal, principal, background):
     """Visibility term of dL/dp (N, 3) with the chosen backend."""
     if o["backend"] in ("cpp", "cuda"):
-        mod = _ext.load_cpu() if o["backend"] == "cpp" else _ext_cuda.load_cuda()
-        return mod.visibility_backward(
+        return _kernels(o["backend"]).visibility_backward(
             packed, attrs, idx, depth, rho, images, grad, R, focal, principal, background, o["planes"],
             o["window"], o["stride"], o["cutoff"], o["merge"], o["eps"], 0 if o["mode"] == "dss" else 1)
     frags = Fragments(idx, depth, rho, o["merge"])
@@ -228,7 +254,7 @@ def _visibility_grad(o: dict, packed, attrs, idx, depth, rho, images, grad, R, t
 class _VisibilityGradient(torch.autograd.Function):
     """Identity on the images; in backward adds the visibility term of Eq. gradP to the points.
 
-    Used with the reference and CUDA backends, whose smooth terms come from torch autograd.
+    Used with the reference backend, whose smooth terms come from torch autograd.
     """
 
     @staticmethod
@@ -247,8 +273,8 @@ class _VisibilityGradient(torch.autograd.Function):
         return grad, grad_points, None, None, None, None, None, None
 
 
-class _CppBlend(torch.autograd.Function):
-    """Eq. sumI with the C++ kernels in both directions.
+class _KernelBlend(torch.autograd.Function):
+    """Eq. sumI with the C++ or CUDA kernels in both directions (``opts["backend"]``).
 
     forward: the image the rasteriser already blended. backward: the smooth terms (through
     rho_bar into the packed splat parameters, and through w_k into the attributes) from
@@ -261,7 +287,8 @@ class _CppBlend(torch.autograd.Function):
     def forward(ctx, packed, attrs, points, images, frags_t, cam_t, background, opts):
         ctx.save_for_backward(packed.detach(), attrs.detach(), *frags_t, *cam_t, background, images)
         ctx.opts = opts
-        return _ext.load_cpu().pooled_clone(images)  # a copy: callers may edit the output in place
+        # a copy: callers may edit the output in place
+        return _ext.load_cpu().pooled_clone(images) if opts["backend"] == "cpp" else images.clone()
 
     @staticmethod
     def backward(ctx, grad):
@@ -270,44 +297,46 @@ class _CppBlend(torch.autograd.Function):
         grad = grad.contiguous().float()
         g_packed = g_attrs = g_points = None
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
-            g_packed, g_attrs = _ext.load_cpu().blend_backward(packed, attrs, idx, depth, rho, images, grad, o["merge"])
+            g_packed, g_attrs = _kernels(o["backend"]).blend_backward(packed, attrs, idx, depth, rho, images, grad,
+                                                                       o["merge"])
         if ctx.needs_input_grad[2] and o["mode"] != "none":
             g_points = _visibility_grad(o, packed, attrs, idx, depth, rho, images, grad, R, t, focal, principal, background)
         return g_packed, g_attrs, g_points, None, None, None, None, None
 
 
-class _CppProject(torch.autograd.Function):
-    """:func:`dss.splats.project_splats` with the C++ kernels in both directions.
+class _KernelProject(torch.autograd.Function):
+    """:func:`dss.splats.project_splats` with the C++ or CUDA kernels in both directions.
 
     forward: ``project_splats_forward``; backward: ``project_splats_backward`` gives dL/dpoints and
     dL/dnormals from dL/dpacked (sigma and cameras fixed; render() uses the torch version when
     they require grad). One pass over (view, point) each way instead of ~60 torch operators on
-    (V, N) tensors and their autograd graph (20K points, 12 views, 2 threads: 30 -> ~8 ms per step).
+    (V, N) tensors and their autograd graph (20K points, 12 views, 2 threads: 30 -> ~8 ms per step;
+    on a GPU, ~200 kernel launches fewer per step). Both kernels compile dss/csrc/splat_project.h.
     """
 
     @staticmethod
-    def forward(ctx, points, normals, R, t, focal, principal, sigma, settings):
-        mod = _ext.load_cpu()
+    def forward(ctx, points, normals, R, t, focal, principal, sigma, settings, backend):
+        mod = _kernels(backend)
         packed = mod.project_splats_forward(
             points.detach(), normals.detach(), R, t, focal, principal, sigma, float(settings.cutoff),
             bool(settings.backface_culling), float(settings.znear), float(settings.filter_variance))
         ctx.save_for_backward(points.detach(), normals.detach(), R, t, focal, principal, sigma, packed)
-        ctx.settings = settings
+        ctx.settings, ctx.backend = settings, backend
         return packed
 
     @staticmethod
     def backward(ctx, grad):
         points, normals, R, t, focal, principal, sigma, packed = ctx.saved_tensors
         s = ctx.settings
-        gp, gn = _ext.load_cpu().project_splats_backward(points, normals, R, t, focal, principal, sigma, packed,
-                                                         grad.contiguous().float(), float(s.cutoff),
-                                                         float(s.filter_variance))
+        gp, gn = _kernels(ctx.backend).project_splats_backward(points, normals, R, t, focal, principal, sigma, packed,
+                                                               grad.contiguous().float(), float(s.cutoff),
+                                                               float(s.filter_variance))
         return (gp.to(points.dtype) if ctx.needs_input_grad[0] else None,
-                gn.to(normals.dtype) if ctx.needs_input_grad[1] else None, None, None, None, None, None, None)
+                gn.to(normals.dtype) if ctx.needs_input_grad[1] else None, None, None, None, None, None, None, None)
 
 
-class _CppSunShade(torch.autograd.Function):
-    """:class:`dss.shading.SunLights` (one light per channel) with the C++ kernels both ways.
+class _KernelSunShade(torch.autograd.Function):
+    """:class:`dss.shading.SunLights` (one light per channel) with the C++ or CUDA kernels both ways.
 
     forward: ``sun_shade_forward`` writes the (V, N, 3) attributes the other kernels read,
     contiguous; backward: ``sun_shade_backward`` gives dL/dnormals and dL/dalbedo. Replaces the
@@ -316,11 +345,11 @@ class _CppSunShade(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, normals, albedo, dirs, ambient):
+    def forward(ctx, normals, albedo, dirs, ambient, backend):
         alb = albedo.detach() if albedo is not None else normals.new_empty(0)
-        out = _ext.load_cpu().sun_shade_forward(normals.detach(), alb, dirs, float(ambient))
+        out = _kernels(backend).sun_shade_forward(normals.detach(), alb, dirs, float(ambient))
         ctx.save_for_backward(normals.detach(), alb, dirs)
-        ctx.ambient = float(ambient)
+        ctx.ambient, ctx.backend = float(ambient), backend
         return out
 
     @staticmethod
@@ -328,20 +357,21 @@ class _CppSunShade(torch.autograd.Function):
         normals, alb, dirs = ctx.saved_tensors
         need_n, need_a = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not (need_n or need_a):
-            return None, None, None, None
-        gn, ga = _ext.load_cpu().sun_shade_backward(normals, alb, dirs, ctx.ambient, grad.contiguous().float(),
-                                                    bool(need_a))
-        return (gn.to(normals.dtype) if need_n else None, ga.to(alb.dtype) if need_a else None, None, None)
+            return None, None, None, None, None
+        gn, ga = _kernels(ctx.backend).sun_shade_backward(normals, alb, dirs, ctx.ambient, grad.contiguous().float(),
+                                                          bool(need_a))
+        return (gn.to(normals.dtype) if need_n else None, ga.to(alb.dtype) if need_a else None, None, None, None)
 
 
 def _shade(shading, points, normals, cameras: Cameras, colors, backend: str) -> torch.Tensor:
-    """:func:`dss.shading.shade`, with the fused C++ sun shader on the ``cpp`` backend."""
+    """:func:`dss.shading.shade`, with the fused sun shader kernel on the ``cpp`` and ``cuda`` backends."""
     sun = SunLights() if isinstance(shading, str) and shading == "sun" else shading
     # the kernel takes no gradient to the cameras and one albedo value per point and channel
-    if (backend != "cpp" or not isinstance(sun, SunLights) or not sun.one_light_per_channel()
+    if (backend not in ("cpp", "cuda") or not isinstance(sun, SunLights) or not sun.one_light_per_channel()
             or cameras.R.requires_grad or (colors is not None and colors.shape != (points.shape[0], 3))):
         return shade(shading, points, normals, cameras, colors)
-    return _CppSunShade.apply(normals, colors, sun.world_directions(cameras, normals).float(), sun.ambient)
+    return _KernelSunShade.apply(normals, colors, sun.world_directions(cameras, normals).float(), sun.ambient,
+                                 backend)
 
 
 def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras):
@@ -373,7 +403,7 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
         shading: "sun" (default), "albedo", "normals", "depth", "mask", or a callable such as
             :class:`dss.shading.PointLight` (see :func:`dss.shading.shade`).
         colors: (N, 3) per-point albedo (may require grad).
-        backend: "auto", "cpp" or "reference".
+        backend: "auto", "cpp", "cuda" (CUDA tensors) or "reference".
         sigma: overrides ``settings.sigma`` with a scalar or an (N,) tensor.
 
     Returns:
@@ -395,23 +425,23 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
     if settings.spatial_sort and points.shape[0] >= SORT_MIN_POINTS:
         order = spatial_order(points)
         sigma_caller = sigma_t
-        points, normals = points[order], normals[order]
-        colors = None if colors is None else colors[order]
+        points, normals = _PermuteRows.apply(points, order), _PermuteRows.apply(normals, order)
+        colors = None if colors is None else _PermuteRows.apply(colors, order)
         if sigma_t.ndim == 1 and sigma_t.numel() == order.numel():
             sigma_t = sigma_t[order]
     camera_grad = any(x.requires_grad for x in (cameras.R, cameras.t, cameras.focal, cameras.principal))
-    if backend == "cpp" and not sigma_t.requires_grad and not camera_grad:
-        # the fused C++ projection (same formulas as project_splats) and its hand-written backward
-        splats = Splats(_CppProject.apply(points, normals, cameras.R, cameras.t, cameras.focal, cameras.principal,
-                                          sigma_t.detach().reshape(-1), settings))
+    if backend in ("cpp", "cuda") and not sigma_t.requires_grad and not camera_grad:
+        # the fused projection kernel (same formulas as project_splats) and its hand-written backward
+        splats = Splats(_KernelProject.apply(points, normals, cameras.R, cameras.t, cameras.focal, cameras.principal,
+                                             sigma_t.detach().reshape(-1), settings, backend))
     else:
         splats = project_splats(points, normals, cameras, sigma_t, settings.cutoff, settings.backface_culling,
                                 settings.znear, settings.filter_variance)
     attrs = _shade(shading, points, normals, cameras, colors, backend)
-    if backend == "cpp":
-        # one copy here (a torch shader's attributes can be a permuted or expanded view; the C++
-        # sun shader's are contiguous already) instead of one in every kernel that reads them
-        # (rasteriser, blend and visibility backward)
+    if backend in ("cpp", "cuda"):
+        # one copy here (a torch shader's attributes can be a permuted or expanded view; the
+        # kernels' sun shader's are contiguous already) instead of one in every kernel that reads
+        # them (rasteriser, blend and visibility backward)
         attrs = attrs.float().contiguous()
     C = attrs.shape[-1]
     bg = torch.as_tensor(settings.background, dtype=torch.float32, device=points.device).flatten()
@@ -430,8 +460,8 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
         cam_t = (cameras.R, cameras.t, cameras.focal, cameras.principal)
         vis_points = points if (settings.gradient != "none" and points.requires_grad) else points.detach()
         opts["planes"] = tangent_planes(points, normals, cameras, settings.occlusion_depth) if vis_points.requires_grad else None
-        if backend == "cpp":
-            images = _CppBlend.apply(splats.packed, attrs, vis_points, images.float(), frags_t, cam_t, bg, opts)
+        if backend in ("cpp", "cuda"):
+            images = _KernelBlend.apply(splats.packed, attrs, vis_points, images.float(), frags_t, cam_t, bg, opts)
         else:
             images, mask = _blend_differentiable(frags, splats, attrs, bg)
             if vis_points.requires_grad:

@@ -9,7 +9,8 @@ of ``--repeats`` runs after ``--warmup`` runs, each bracketed by torch.cuda.sync
 JSON names the device; it is printed and, with ``--out``, written atomically.
 
 Timed, per size:
-- ``kernels``: ``project_splats`` + shading (torch, no grad), ``rasterize_forward`` (cache and
+- ``kernels``: ``project_splats_forward`` + ``sun_shade_forward`` (with the lights' directions, a
+  few torch ops), ``rasterize_forward`` (cache and
   blended image), ``visibility_backward`` (dss gradient, window 4), and their sum;
 - ``render`` (only when ``dss.render`` accepts ``backend="cuda"``): one optimisation step,
   forward with autograd, L1 loss, backward; forward-only without grad; peak GPU memory.
@@ -67,17 +68,21 @@ def _timed(fn, warmup: int, repeats: int) -> dict:
 
 def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, warmup: int, repeats: int) -> dict:
     """The CUDA kernels alone, on inputs prepared outside the timed region."""
-    from dss.shading import shade
-    from dss.splats import project_splats, tangent_planes
+    from dss.shading import SunLights
+    from dss.splats import tangent_planes
 
     H, W = cams.image_size
     bg = torch.zeros(3, device=points.device)
+    sig = sigma.reshape(-1).float()
+    sun = SunLights()
+    no_albedo = torch.empty(0, device=points.device)
 
     def project():
-        with torch.no_grad():
-            sp = project_splats(points, normals, cams, sigma, settings.cutoff, settings.backface_culling,
-                                settings.znear, filter_variance=settings.filter_variance)
-            return sp.packed.contiguous(), shade("sun", points, normals, cams).contiguous()
+        packed = mod.project_splats_forward(points, normals, cams.R, cams.t, cams.focal, cams.principal, sig,
+                                            settings.cutoff, settings.backface_culling, settings.znear,
+                                            settings.filter_variance)
+        dirs = sun.world_directions(cams, normals).float().contiguous()
+        return packed, mod.sun_shade_forward(normals, no_albedo, dirs, sun.ambient)
 
     packed, attrs = project()
     fwd_args = (packed, attrs, H, W, settings.K, settings.cutoff, merge, bg)
@@ -144,8 +149,39 @@ def bench_render_step(points, normals, cams, sigma, settings, warmup: int, repea
     }
 
 
+def profile_render_step(points, normals, cams, sigma, settings, steps: int = 3, rows: int = 25) -> dict:
+    """torch.profiler over ``steps`` render steps (forward with grad, L1, backward): where the time goes.
+
+    Returns the operators' table twice, by self CUDA time and by CPU time including children
+    (at small sizes a step is launch-bound: the CPU column is the one that sets the step time).
+    """
+    from torch.profiler import ProfilerActivity, profile
+
+    from dss.render import render
+
+    with torch.no_grad():
+        target = render(points, normals, cams, settings, backend="cuda", sigma=sigma).images
+
+    def step():
+        p = points.clone().requires_grad_()
+        n = normals.clone().requires_grad_()
+        img = render(p, n, cams, settings, backend="cuda", sigma=sigma).images
+        (img - target).abs().mean().backward()
+
+    step()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(steps):
+            step()
+        torch.cuda.synchronize()
+    ka = prof.key_averages()
+    return {"steps": steps,
+            "by_self_cuda_time": ka.table(sort_by="self_cuda_time_total", row_limit=rows),
+            "by_cpu_time": ka.table(sort_by="cpu_time_total", row_limit=rows)}
+
+
 def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, warmup: int = 3,
-        repeats: int = 10) -> dict:
+        repeats: int = 10, profile: bool = False) -> dict:
     """Benchmark every size; raises RuntimeError when there is no GPU or the kernels do not build."""
     import importlib
 
@@ -178,6 +214,10 @@ def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, w
         if render_has_cuda:
             row["render"] = bench_render_step(pts, nrm, cams, sigma, settings, warmup, repeats)
             log.info("%d points: render step %.3f ms", n, row["render"]["step_ms"])
+            if profile:
+                row["profile"] = profile_render_step(pts, nrm, cams, sigma, settings)
+                log.info("%d points, by self CUDA time:\n%s", n, row["profile"]["by_self_cuda_time"])
+                log.info("%d points, by CPU time:\n%s", n, row["profile"]["by_cpu_time"])
             if n in TARGET_STEP_MS:
                 row["target_step_ms"] = TARGET_STEP_MS[n]
                 row["meets_target"] = row["render"]["step_ms"] <= TARGET_STEP_MS[n]
@@ -205,12 +245,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--out", default=None, help="also write the JSON here (atomically)")
+    ap.add_argument("--profile", action="store_true", help="also profile 3 render steps per size (torch.profiler)")
     args = ap.parse_args(argv)
     if args.repeats < 1 or args.warmup < 0:
         ap.error("--repeats must be >= 1 and --warmup >= 0")
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     try:
-        result = run(args.points, args.views, args.image_size, args.warmup, args.repeats)
+        result = run(args.points, args.views, args.image_size, args.warmup, args.repeats, args.profile)
     except RuntimeError as e:
         print(json.dumps({"error": str(e)}), file=sys.stderr)
         raise SystemExit(2) from e

@@ -245,6 +245,16 @@ def _describe(d: dict) -> str:
             f"{r['points']} points {_fmt(r['torch_ms'], 3)} / {_fmt(r['cpp_ms'], 3)}" for r in d["rows"]) + \
             "; kNN cKDTree / C++ (ms): " + "; ".join(
             f"{r['points']} points k={r['k']} {_fmt(r['scipy_ms'], 3)} / {_fmt(r['cpp_ms'], 3)}" for r in d["knn"])
+    if isinstance(d.get("base_label"), str) and isinstance(d.get("results"), list):  # experiments.ab_gpu
+        return f"CUDA render step on {d.get('device', '?')}, medians of {d.get('rounds', '?')} alternating rounds, " \
+               "base / working tree: " + "; ".join(
+                   f"{r['points']} points {_fmt(r['base']['step_ms'], 3)} / {_fmt(r['work']['step_ms'], 3)} ms "
+                   f"({_fmt(r['speedup'], 3)}x)" for r in d["results"])
+    if isinstance(d.get("device"), str) and isinstance(d.get("results"), list):  # experiments.bench_gpu
+        return f"CUDA on {d['device']}: " + "; ".join(
+            f"{r['points']} points kernels {_fmt(r['kernels']['sum_median_ms'], 3)} ms"
+            + (f", render step {_fmt(r['render']['step_ms'], 3)} ms" if isinstance(r.get("render"), dict) else "")
+            for r in d["results"] if isinstance(r.get("kernels"), dict))
     for key in ("title", "what", "figure", "note"):
         if isinstance(d.get(key), str):
             return d[key].split("\n")[0][:160]

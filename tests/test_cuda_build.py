@@ -173,6 +173,11 @@ class EmulatedKernels:
             "emu_rasterize_tiles": [P, I64, I64, I, I, I, P, P, P, F, F, P, I, P, P, P, P, P, P],
             "emu_visibility": [P] * 12 + [I64, I64, I, I, I, I, I, I, F, F, F, I, P],
             "emu_reduce_views": [P, P, I64, I64, P],
+            "emu_project_forward": [P] * 7 + [I64, I64, F, I, F, F, P],
+            "emu_project_backward": [P] * 8 + [I64, I64, F, F, P, P],
+            "emu_sun_forward": [P, P, P, I64, I64, F, P],
+            "emu_sun_backward": [P, P, P, P, I64, I64, F, P, P],
+            "emu_blend_backward": [P] * 7 + [I64, I64, I, I, I, I, F, P, P],
         }
         for name, args in sig.items():
             fn = getattr(self.lib, name)
@@ -227,6 +232,59 @@ class EmulatedKernels:
                                             merge, eps, mode, self._p(partial)), "visibility")
         self._check(self.lib.emu_reduce_views(self._p(ts[0]), self._p(partial), V, N, self._p(out)), "reduce_views")
         return out
+
+    @staticmethod
+    def _project_inputs(points, normals, R, t, focal, principal, sigma):
+        ts = [x.float().contiguous() for x in (points, normals, R, t, focal, principal)]
+        return ts + [sigma.float().expand(points.shape[0]).contiguous()]
+
+    def project_splats_forward(self, points, normals, R, t, focal, principal, sigma, cutoff, culling, znear,
+                               filter_variance):
+        ts = self._project_inputs(points, normals, R, t, focal, principal, sigma)
+        V, N = R.shape[0], points.shape[0]
+        out = torch.empty(V, N, 10)
+        self._check(self.lib.emu_project_forward(*[self._p(x) for x in ts], V, N, cutoff, int(culling), znear,
+                                                 filter_variance, self._p(out)), "project_forward")
+        return out
+
+    def project_splats_backward(self, points, normals, R, t, focal, principal, sigma, packed, grad, cutoff,
+                                filter_variance):
+        p, n, R, t, f, _, s = self._project_inputs(points, normals, R, t, focal, principal, sigma)
+        packed, grad = packed.float().contiguous(), grad.float().contiguous()
+        V, N = R.shape[0], points.shape[0]
+        gp, gn = torch.empty(N, 3), torch.empty(N, 3)
+        self._check(self.lib.emu_project_backward(*[self._p(x) for x in (p, n, R, t, f, s, packed, grad)], V, N,
+                                                  cutoff, filter_variance, self._p(gp), self._p(gn)),
+                    "project_backward")
+        return [gp, gn]
+
+    def blend_backward(self, packed, attrs, idx, depth, rho, images, grad, merge):
+        ts = [t.contiguous() for t in (packed, attrs, idx, depth, rho, images, grad)]
+        V, N = packed.shape[:2]
+        _, H, W, K = idx.shape
+        C = attrs.shape[2]
+        gpk, gat = torch.empty(V, N, 10), torch.empty(V, N, C)
+        self._check(self.lib.emu_blend_backward(*[self._p(t) for t in ts], V, N, H, W, K, C, merge, self._p(gpk),
+                                                self._p(gat)), "blend_backward")
+        return [gpk, gat]
+
+    def sun_shade_forward(self, normals, albedo, dirs, ambient):
+        n, d = normals.float().contiguous(), dirs.float().contiguous()
+        a = albedo.float().contiguous() if albedo.numel() else None
+        out = torch.empty(d.shape[0], n.shape[0], 3)
+        self._check(self.lib.emu_sun_forward(self._p(n), self._p(a), self._p(d), d.shape[0], n.shape[0], ambient,
+                                             self._p(out)), "sun_forward")
+        return out
+
+    def sun_shade_backward(self, normals, albedo, dirs, ambient, grad, need_albedo):
+        n, d, g = normals.float().contiguous(), dirs.float().contiguous(), grad.float().contiguous()
+        a = albedo.float().contiguous() if albedo.numel() else None
+        gn = torch.empty(n.shape[0], 3)
+        ga = torch.empty(n.shape[0], 3) if (need_albedo and a is not None) else torch.empty(0)
+        self._check(self.lib.emu_sun_backward(self._p(n), self._p(a), self._p(d), self._p(g), d.shape[0], n.shape[0],
+                                              ambient, self._p(gn), self._p(ga) if ga.numel() else None),
+                    "sun_backward")
+        return [gn, ga]
 
 
 def _cxx() -> str | None:
@@ -301,6 +359,69 @@ def test_emulated_visibility_equals_cpu_kernel(name, mode, scenes, emulated, cpu
         assert torch.equal(ga, gb), f"{(ga != gb).any(1).sum().item()} points differ, max {(ga - gb).abs().max().item()}"
 
 
+def project_args(seed: int, n: int = 700, views: int = 3, behind: int = 40):
+    """Points, normals, cameras and (N,) sigma; the last ``behind`` points behind the cameras' near plane."""
+    pts, nrm, cams, sigma, _ = random_scene(seed, n, views, (40, 56))
+    if behind:  # behind the first camera (it looks at the origin): Z < znear there
+        c0 = cams.centers[0]
+        pts[-behind:] = 1.5 * c0 + 0.1 * torch.randn(behind, 3, generator=torch.Generator().manual_seed(seed))
+    return pts, nrm, cams.R, cams.t, cams.focal, cams.principal, sigma
+
+
+@pytest.mark.parametrize("culling", [True, False])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_emulated_projection_equals_cpu_kernel(seed, culling, emulated, cpu_kernel):
+    """Forward and backward of the projection (splat_project.h on both sides): bit for bit."""
+    args = project_args(seed)
+    a = cpu_kernel.project_splats_forward(*args, 2.0, culling, 0.01, 0.3)
+    b = emulated.project_splats_forward(*args, 2.0, culling, 0.01, 0.3)
+    assert torch.equal(a, b), f"{(a != b).sum().item()} packed values differ"
+    valid = a[..., 9] > 0
+    assert valid.any() and (~valid).any(), "the scene must have valid and culled splats"
+    g = torch.randn(a.shape, generator=torch.Generator().manual_seed(seed + 7))
+    ga = cpu_kernel.project_splats_backward(*args, a, g, 2.0, 0.3)
+    gb = emulated.project_splats_backward(*args, a, g, 2.0, 0.3)
+    for x, y, what in zip(ga, gb, ("points", "normals")):
+        assert x.abs().sum() > 0
+        assert torch.equal(x, y), f"dL/d{what}: {(x != y).any(1).sum().item()} points differ"
+
+
+@pytest.mark.parametrize("with_albedo", [True, False])
+def test_emulated_sun_shading_equals_cpu_kernel(with_albedo, emulated, cpu_kernel):
+    from dss.shading import SunLights
+
+    pts, nrm, cams, _, colors = random_scene(4, n=500, views=3)
+    nrm[:20] = 0.0  # n . d exactly 0: where the clamp's gradient switches
+    dirs = SunLights().world_directions(cams, nrm).float().contiguous()
+    alb = colors if with_albedo else torch.empty(0)
+    a = cpu_kernel.sun_shade_forward(nrm, alb, dirs, 0.1)
+    b = emulated.sun_shade_forward(nrm, alb, dirs, 0.1)
+    assert torch.equal(a, b)
+    g = torch.randn(a.shape, generator=torch.Generator().manual_seed(5))
+    for need_albedo in (True, False):
+        ga = cpu_kernel.sun_shade_backward(nrm, alb, dirs, 0.1, g, need_albedo)
+        gb = emulated.sun_shade_backward(nrm, alb, dirs, 0.1, g, need_albedo)
+        assert ga[0].abs().sum() > 0
+        for x, y in zip(ga, gb):
+            assert x.shape == y.shape and torch.equal(x, y)
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_emulated_blend_backward_matches_cpu_kernel(name, scenes, emulated, cpu_kernel):
+    """Same formulas, same per-splat pixel order, double sums; only expf's last bits may differ
+    (the emulation links the host's expf, the CPU kernel calls std::exp: here the same)."""
+    s = scenes[name]
+    cache = cpu_kernel.rasterize_forward(*forward_args(s))
+    idx, depth, rho, images, _ = cache
+    grad = random_grad(images, 9)
+    ga = cpu_kernel.blend_backward(s["packed"], s["attrs"], idx, depth, rho, images, grad, s["merge"])
+    gb = emulated.blend_backward(s["packed"], s["attrs"], idx, depth, rho, images, grad, s["merge"])
+    assert ga[0].abs().sum() > 0 and ga[1].abs().sum() > 0
+    for x, y, what in zip(ga, gb, ("packed", "attrs")):
+        assert x.shape == y.shape
+        assert torch.equal(x, y), f"dL/d{what}: {(x != y).sum().item()} values differ, max {(x - y).abs().max().item()}"
+
+
 def test_emulated_kernels_reject_bad_sizes(scenes, emulated):
     s = scenes["ties"]
     with pytest.raises(RuntimeError, match="rasterize_tiles"):
@@ -368,6 +489,39 @@ def test_emulated_glue_equals_cpu_kernel(name, scenes, emulated_module, cpu_kern
 
 
 @pytest.mark.slow
+def test_emulated_glue_projection_shading_and_blend_equal_cpu_kernel(scenes, emulated_module, cpu_kernel):
+    """The glue of the projection, the sun shader and the blend backward (bit for bit in emulation)."""
+    from dss.shading import SunLights
+
+    args = project_args(2)
+    a = cpu_kernel.project_splats_forward(*args, 2.0, True, 0.01, 0.3)
+    assert torch.equal(a, emulated_module.project_splats_forward(*args, 2.0, True, 0.01, 0.3))
+    g = torch.randn(a.shape, generator=torch.Generator().manual_seed(2))
+    for x, y in zip(cpu_kernel.project_splats_backward(*args, a, g, 2.0, 0.3),
+                    emulated_module.project_splats_backward(*args, a, g, 2.0, 0.3)):
+        assert torch.equal(x, y)
+    nrm, cams = args[1], random_scene(2, 700, 3, (40, 56))[2]
+    dirs = SunLights().world_directions(cams, nrm).float().contiguous()
+    alb = torch.rand(len(nrm), 3)
+    w = cpu_kernel.sun_shade_forward(nrm, alb, dirs, 0.2)
+    assert torch.equal(w, emulated_module.sun_shade_forward(nrm, alb, dirs, 0.2))
+    gw = torch.randn(w.shape, generator=torch.Generator().manual_seed(3))
+    for x, y in zip(cpu_kernel.sun_shade_backward(nrm, alb, dirs, 0.2, gw, True),
+                    emulated_module.sun_shade_backward(nrm, alb, dirs, 0.2, gw, True)):
+        assert torch.equal(x, y)
+    s = scenes["ties"]
+    idx, depth, rho, images, _ = cpu_kernel.rasterize_forward(*forward_args(s))
+    grad = random_grad(images, 4)
+    for x, y in zip(cpu_kernel.blend_backward(s["packed"], s["attrs"], idx, depth, rho, images, grad, s["merge"]),
+                    emulated_module.blend_backward(s["packed"], s["attrs"], idx, depth, rho, images, grad, s["merge"])):
+        assert torch.equal(x, y)
+    with pytest.raises(RuntimeError, match="sigma must be"):
+        emulated_module.project_splats_forward(*args[:6], torch.ones(3), 2.0, True, 0.01, 0.3)
+    with pytest.raises(RuntimeError, match="grad must be shaped like packed"):
+        emulated_module.project_splats_backward(*args, a, g[:, :5], 2.0, 0.3)
+
+
+@pytest.mark.slow
 def test_emulated_glue_checks_its_inputs(scenes, emulated_module):
     s = scenes["ties"]
     with pytest.raises(RuntimeError, match="K must be in"):
@@ -416,6 +570,29 @@ def test_bench_gpu_says_it_needs_a_gpu(capsys):
     assert "needs a GPU" in capsys.readouterr().err
 
 
+def test_ab_gpu_summarizes_alternating_runs(tmp_path):
+    """experiments.ab_gpu --summarize: medians per tree and size over the rounds, base / work."""
+    import json
+
+    from experiments import ab_gpu
+
+    runs = []
+    for base_ms, work_ms in ((12.0, 4.0), (13.0, 3.0), (11.0, 5.0)):
+        for label, ms in (("old", base_ms), (".", work_ms)):
+            runs.append(json.dumps({"label": label, "dss": f"{label}/dss/__init__.py", "points": 20000, "source": "s",
+                                    "device": "GPU", "step_ms": ms, "forward_with_grad_ms": ms / 2,
+                                    "backward_ms": ms / 2, "peak_memory_mb": 10 * ms}))
+    f = tmp_path / "ab.txt"
+    f.write_text("\n".join(["=== noise", *runs]) + "\n")
+    out = tmp_path / "ab.json"
+    (row,) = ab_gpu.main(["--summarize", str(f), "--base-label", "old", "--out", str(out)])
+    assert row["base"]["step_ms"] == 12.0 and row["work"]["step_ms"] == 4.0 and row["speedup"] == 3.0
+    assert row["base"]["step_ms_runs"] == [12.0, 13.0, 11.0]
+    assert json.loads(out.read_text())["command"].startswith("python -m experiments.ab_gpu --summarize")
+    with pytest.raises(SystemExit, match="expected two trees"):
+        ab_gpu.main(["--summarize", str(f), "--base-label", "nope"])
+
+
 # ----------------------------------------------------------------------------------------------
 # On a GPU: the real module against the CPU kernel
 
@@ -454,8 +631,8 @@ def _sphere_scene(n: int, views: int = 12, size=(256, 256), K: int = 5) -> dict:
     packed = project_splats(pts, nrm, cams, sigma).packed.detach().contiguous()
     g = torch.Generator().manual_seed(n)
     attrs = torch.rand(views, n, 3, generator=g)
-    return dict(packed=packed, attrs=attrs, bg=torch.zeros(3), cams=cams, H=size[0], W=size[1], K=K,
-                merge=0.01 * 2 * 3**0.5, cutoff=2.0)
+    return dict(packed=packed, attrs=attrs, bg=torch.zeros(3), planes=tangent_planes(pts, nrm, cams), cams=cams,
+                H=size[0], W=size[1], K=K, merge=0.01 * 2 * 3**0.5, cutoff=2.0)
 
 
 def _assert_forward_close(a, b, where: str):
@@ -528,6 +705,50 @@ def test_gpu_matches_cpu_on_a_denoising_sized_scene(cuda_kernel, cpu_kernel):
     ga = cpu_kernel.visibility_backward(*backward_args(s, a, grad, 0))
     gb = cuda_kernel.visibility_backward(*backward_args(sg, [c.cuda() for c in a], grad.cuda(), 0)).cpu()
     assert _rel_max(ga, gb) <= 1e-5
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("culling", [True, False])
+def test_gpu_projection_and_sun_shading_equal_cpu_kernel(culling, cuda_kernel, cpu_kernel):
+    """splat_project.h and the sun shader on the GPU (--fmad=false, IEEE division and sqrt): bit for bit."""
+    from dss.shading import SunLights
+
+    args = project_args(1, n=5000, views=12)
+    gargs = [x.cuda() for x in args]
+    a = cpu_kernel.project_splats_forward(*args, 2.0, culling, 0.01, 0.3)
+    b = cuda_kernel.project_splats_forward(*gargs, 2.0, culling, 0.01, 0.3).cpu()
+    assert torch.equal(a, b), f"{(a != b).sum().item()} packed values differ, max {(a - b).abs().max().item()}"
+    g = torch.randn(a.shape, generator=torch.Generator().manual_seed(3))
+    ga = cpu_kernel.project_splats_backward(*args, a, g, 2.0, 0.3)
+    gb = [x.cpu() for x in cuda_kernel.project_splats_backward(*gargs, a.cuda(), g.cuda(), 2.0, 0.3)]
+    for x, y in zip(ga, gb):
+        assert torch.equal(x, y), f"{(x != y).any(1).sum().item()} points differ, max {(x - y).abs().max().item()}"
+    pts, nrm = args[0], args[1]
+    cams = random_scene(1, 5000, 12, (40, 56))[2]
+    dirs = SunLights().world_directions(cams, nrm).float().contiguous()
+    colors = torch.rand(len(pts), 3)
+    a = cpu_kernel.sun_shade_forward(nrm, colors, dirs, 0.1)
+    b = cuda_kernel.sun_shade_forward(nrm.cuda(), colors.cuda(), dirs.cuda(), 0.1).cpu()
+    assert torch.equal(a, b)
+    g = torch.randn(a.shape, generator=torch.Generator().manual_seed(4))
+    ga = cpu_kernel.sun_shade_backward(nrm, colors, dirs, 0.1, g, True)
+    gb = cuda_kernel.sun_shade_backward(nrm.cuda(), colors.cuda(), dirs.cuda(), 0.1, g.cuda(), True)
+    for x, y in zip(ga, gb):
+        assert torch.equal(x, y.cpu())
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name", list(SCENES))
+def test_gpu_blend_backward_matches_cpu_kernel(name, scenes, cuda_kernel, cpu_kernel):
+    """Same cache on both sides; expf's last bits (CUDA's is within 2 ulp) are the only difference."""
+    s = scenes[name]
+    idx, depth, rho, images, _ = cpu_kernel.rasterize_forward(*forward_args(s))
+    grad = random_grad(images, 6)
+    ga = cpu_kernel.blend_backward(s["packed"], s["attrs"], idx, depth, rho, images, grad, s["merge"])
+    gb = cuda_kernel.blend_backward(*[t.cuda() for t in (s["packed"], s["attrs"], idx, depth, rho, images, grad)],
+                                    s["merge"])
+    for x, y in zip(ga, gb):
+        assert _rel_max(x, y.cpu()) <= 1e-5
 
 
 @pytest.mark.gpu

@@ -263,7 +263,7 @@ def test_tangent_planes_reproduce_the_centre_depth():
         RenderSettings(occlusion_depth="middle")
 
 
-@pytest.mark.parametrize("backend", ["reference", "cpp"])
+@pytest.mark.parametrize("backend", ["reference", "cpp", pytest.param("cuda", marks=pytest.mark.gpu)])
 def test_spatial_sort_changes_nothing_but_speed(backend, request):
     """render() draws a Morton-sorted copy (dss.ordering) and maps everything back: images,
     gradients (per-point sigma and colours included), the fragment cache and the splats equal
@@ -275,13 +275,17 @@ def test_spatial_sort_changes_nothing_but_speed(backend, request):
         backend = request.getfixturevalue("cpp_backend")
     pts, nrm, cams, sigma, colors = random_scene(7, n=SORT_MIN_POINTS + 500, views=2, size=(32, 40))
     sigma = sigma * 0.3
+    if backend == "cuda":
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA GPU")
+        pts, nrm, sigma, colors, cams = pts.cuda(), nrm.cuda(), sigma.cuda(), colors.cuda(), cams.to("cuda")
     res = {}
     for sort in (False, True):
         p, n, c = (t.clone().requires_grad_() for t in (pts, nrm, colors))
         out = render(p, n, cams, RenderSettings(spatial_sort=sort, merge_threshold=0.05), shading="albedo",
                      colors=c, sigma=sigma, backend=backend)
         assert (out.point_order is not None) == sort
-        (out.images * torch.linspace(0, 1, 3)).sum().backward()
+        (out.images * torch.linspace(0, 1, 3, device=out.images.device)).sum().backward()
         res[sort] = (out.images.detach(), p.grad, n.grad, c.grad, out.fragments.idx, out.splats.packed.detach(),
                      out.attributes.detach(), occlusion_counts(out), out.sigma)
     for a, b in zip(res[False], res[True]):

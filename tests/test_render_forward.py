@@ -249,7 +249,7 @@ def test_sun_shading_is_the_camera_space_diffuse_term():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_cpp_sun_shader_matches_the_torch_one(dtype, cpp_backend):
-    """The cpp backend shades "sun" with the fused C++ kernels (dss.render._CppSunShade): the same
+    """The cpp backend shades "sun" with the fused C++ kernels (dss.render._KernelSunShade): the same
     attributes as SunLights in torch, and the same gradients for normals (any length, a zero
     normal among them: torch's clamp passes the gradient at n . d = 0) and albedo; render()
     falls back to torch where the kernel cannot serve (cameras that require grad)."""
@@ -271,7 +271,7 @@ def test_cpp_sun_shader_matches_the_torch_one(dtype, cpp_backend):
             a = None if albedo is None else albedo.clone().requires_grad_()
             out = _shade("sun", pts, n, cams, a, cpp_backend) if fused else sun(pts, n, cams, a)
             assert out.shape == (5, 2100, 3)
-            assert (type(out.grad_fn).__name__ == "_CppSunShadeBackward") == fused
+            assert (type(out.grad_fn).__name__ == "_KernelSunShadeBackward") == fused
             (out * g).sum().backward()
             grads.append((out.detach().float(), n.grad, None if a is None else a.grad))
         (w_t, gn_t, ga_t), (w_c, gn_c, ga_c) = grads
@@ -283,7 +283,7 @@ def test_cpp_sun_shader_matches_the_torch_one(dtype, cpp_backend):
     # cameras that require grad take the torch path, and get their gradient
     R = cams.R.clone().requires_grad_()
     out = _shade("sun", pts, nrm, Cameras(R, cams.t, cams.focal, cams.principal, cams.image_size), None, cpp_backend)
-    assert type(out.grad_fn).__name__ != "_CppSunShadeBackward"
+    assert type(out.grad_fn).__name__ != "_KernelSunShadeBackward"
     out.sum().backward()
     assert R.grad is not None and R.grad.abs().max() > 0
 

@@ -22,6 +22,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "splat_project.h"
 // x86-64 builds compile AVX2 versions of the hot loops (function target attributes, so the rest of
 // the file stays baseline x86-64) and take them at run time when the CPU has AVX2.
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -1293,43 +1294,9 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
 }
 
 // ---------------------------------------------------------------------------------------------
-// The camera-frame geometry of one splat (dss/splats.py project_splats, same formulas), shared by
-// the projection's forward and backward: camera-space point and normal, the unit normal, the rows
-// m1, m2 of the projection's derivative, A = M P M^T, |det J| and Sigma = s^2 A + fv I.
-// Zs = Z in front of the near plane, else 1 (culled splats stay finite).
-constexpr float kInf = std::numeric_limits<float>::infinity();
-struct SplatGeometry {
-  float X, Y, Z, Zs, nc[3], inv, nh[3], m1[3], m2[3], m1n, m2n, A11, A12, A22, w, detJ, s2, S11, S12, S22, detS;
-};
-
-DSS_INLINE SplatGeometry splat_geometry(const float* p, const float* n, const float* Rv, const float* tv, float f,
-                                    float sigma, float fv, float zn) {
-  SplatGeometry g;
-  float pc[3];
-  for (int a = 0; a < 3; ++a) {
-    pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + tv[a];
-    g.nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
-  }
-  g.X = pc[0], g.Y = pc[1], g.Z = pc[2];
-  const float Zs = g.Z > zn ? g.Z : 1.f;
-  g.Zs = Zs;
-  const float nl2 = g.nc[0] * g.nc[0] + g.nc[1] * g.nc[1] + g.nc[2] * g.nc[2];
-  g.inv = 1.f / std::sqrt(nl2 + 1e-20f);
-  for (int a = 0; a < 3; ++a) g.nh[a] = g.nc[a] * g.inv;
-  g.m1[0] = f / Zs, g.m1[1] = 0.f, g.m1[2] = -f * g.X / (Zs * Zs);
-  g.m2[0] = 0.f, g.m2[1] = f / Zs, g.m2[2] = -f * g.Y / (Zs * Zs);
-  g.m1n = g.m1[0] * g.nh[0] + g.m1[2] * g.nh[2];
-  g.m2n = g.m2[1] * g.nh[1] + g.m2[2] * g.nh[2];
-  g.A11 = g.m1[0] * g.m1[0] + g.m1[2] * g.m1[2] - g.m1n * g.m1n;
-  g.A12 = g.m1[2] * g.m2[2] - g.m1n * g.m2n;
-  g.A22 = g.m2[1] * g.m2[1] + g.m2[2] * g.m2[2] - g.m2n * g.m2n;
-  g.w = g.nh[0] * g.X + g.nh[1] * g.Y + g.nh[2] * Zs;
-  g.detJ = f * f * std::fabs(g.w) / (Zs * Zs * Zs);
-  g.s2 = sigma * sigma;
-  g.S11 = g.s2 * g.A11 + fv, g.S12 = g.s2 * g.A12, g.S22 = g.s2 * g.A22 + fv;
-  g.detS = g.s2 * g.s2 * (g.detJ * g.detJ) + g.s2 * fv * (g.A11 + g.A22) + fv * fv;
-  return g;
-}
+// The projection of one splat, forward and backward: splat_project.h (shared with the CUDA kernel).
+using dss_splat::project_backward_one;
+using dss_splat::project_forward_one;
 
 // One view's points [k0, k1) of project_splats_forward: straight-line code (the branches are
 // selects) so that the compiler vectorises the loop; every lane does the scalar loop's float32
@@ -1346,23 +1313,8 @@ DSS_INLINE void project_forward_range(const ProjectView& a, int64_t k0, int64_t 
   const float f = a.f, cx = a.cx, cy = a.cy, fv = a.fv, C2 = a.C2, zn = a.zn;
   const bool culling = a.culling;
 #pragma omp simd
-  for (int64_t k = k0; k < k1; ++k) {
-    const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, zn);
-    const float X = g.X, Y = g.Y, Z = g.Z, Zs = g.Zs, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
-    float* o = O + k * kFields;
-    o[0] = f * X / Zs + cx;
-    o[1] = f * Y / Zs + cy;
-    o[2] = S22 / detS;
-    o[3] = -2.f * S12 / detS;
-    o[4] = S11 / detS;
-    o[5] = g.detJ / (2.f * 3.14159265358979f * std::sqrt(detS));
-    o[6] = Z;
-    o[7] = std::sqrt(C2 * S11);
-    o[8] = std::sqrt(C2 * S22);
-    // valid: in front of the near plane and (without culling, or) facing the camera
-    const int front = Z > zn, facing = (g.nc[0] * X + g.nc[1] * Y + g.nc[2] * Z) < 0.f;
-    o[9] = (front & (facing | !culling)) ? 1.f : 0.f;
-  }
+  for (int64_t k = k0; k < k1; ++k)
+    project_forward_one(Pp + k * 3, Nn + k * 3, Rv, tv, f, cx, cy, Sg[k], fv, C2, zn, culling, O + k * kFields);
 }
 
 #ifdef DSS_HAVE_AVX2
@@ -1434,65 +1386,13 @@ DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int6
 #pragma omp simd
     for (int j = 0; j < nbk; ++j) {
       const int64_t k = b0 + j;
-      // valid splats only (Z > znear): no near-plane substitute for Z
-      const SplatGeometry g = splat_geometry(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, -kInf);
-      const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
-      const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
-      // (copies, not pointers into g: g then stays in registers and the loop vectorises)
-      const float nc[3] = {g.nc[0], g.nc[1], g.nc[2]}, nh[3] = {g.nh[0], g.nh[1], g.nh[2]};
-      const float m1[3] = {g.m1[0], g.m1[1], g.m1[2]}, m2[3] = {g.m2[0], g.m2[1], g.m2[2]};
-      const float iS = 1.f / detS;
-      const float sqS = std::sqrt(detS);
-      // outputs: u v a b2 c norm depth rx ry
-      const float gu = gk[0][j], gv = gk[1][j], ga = gk[2][j], gb2 = gk[3][j], gc = gk[4][j], gnorm = gk[5][j];
-      const float gz = gk[6][j], grx = gk[7][j], gry = gk[8][j], rx = pk[0][j], ry = pk[1][j];
-      const float k2pi = 1.f / (2.f * 3.14159265358979f);
-      float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
-      // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
-      gS11 = rx > 0.f ? gS11 + grx * C / rx : gS11;
-      gS22 = ry > 0.f ? gS22 + gry * C / ry : gS22;
-      const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
-      const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
-      const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
-      float gm1[3], gm2[3];
+      // culled splats get no gradient (the renderer never reads them)
+      const dss_splat::SplatGrad sg =
+          project_backward_one(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, C, gk[0][j], gk[1][j], gk[2][j], gk[3][j],
+                               gk[4][j], gk[5][j], gk[6][j], gk[7][j], gk[8][j], pk[0][j], pk[1][j], pk[2][j] > 0.f);
       for (int c = 0; c < 3; ++c) {
-        gm1[c] = 2.f * gA11 * m1[c] + gA12 * m2[c];
-        gm2[c] = 2.f * gA22 * m2[c] + gA12 * m1[c];
-      }
-      const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
-      const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
-      float gnh[3];
-      for (int c = 0; c < 3; ++c) {
-        gm1[c] += gm1n * nh[c];
-        gm2[c] += gm2n * nh[c];
-        gnh[c] = gm1n * m1[c] + gm2n * m2[c];
-      }
-      // detJ = f^2 |w| / Z^3
-      const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
-      gnh[0] += gw * X;
-      gnh[1] += gw * Y;
-      gnh[2] += gw * Z;
-      float gX = gw * nh[0], gY = gw * nh[1];
-      float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
-      // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
-      gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
-      gX += -gm1[2] * f * iZ * iZ;
-      gY += -gm2[2] * f * iZ * iZ;
-      // u = f X / Z + cx, v = f Y / Z + cy
-      gX += gu * f * iZ;
-      gY += gv * f * iZ;
-      gZ += -(gu * X + gv * Y) * f * iZ * iZ;
-      // nh = nc / sqrt(|nc|^2 + 1e-20)
-      const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
-      float gnc[3];
-      for (int c = 0; c < 3; ++c) gnc[c] = inv * gnh[c] - inv * inv * inv * dn * nc[c];
-      const float gpc[3] = {gX, gY, gZ};
-      const bool valid = pk[2][j] > 0.f;  // culled splats get no gradient (the renderer never reads them)
-      for (int c = 0; c < 3; ++c) {  // world = R^T camera
-        const float op = Rv[0 * 3 + c] * gpc[0] + Rv[1 * 3 + c] * gpc[1] + Rv[2 * 3 + c] * gpc[2];
-        const float on = Rv[0 * 3 + c] * gnc[0] + Rv[1 * 3 + c] * gnc[1] + Rv[2 * 3 + c] * gnc[2];
-        gout[c * N + k] = valid ? op : 0.f;
-        gout[(3 + c) * N + k] = valid ? on : 0.f;
+        gout[c * N + k] = sg.gp[c];
+        gout[(3 + c) * N + k] = sg.gn[c];
       }
     }
   }

@@ -14,6 +14,10 @@
 //      shared memory in batches of 256 splats and each pixel keeps its top-K (depth, index) list
 //      in registers (K is a template parameter so the insertion unrolls); then the cache is
 //      written and the visible entries are blended (Eq. sumI).
+// Blend backward (the smooth terms of Eqs. gradN, gradP): one thread per (view, splat) gathers the
+// cache entries that hold it over its box, in the CPU kernel's pixel order (no atomics).
+// Projection (dss/splats.py project_splats) forward, one thread per (view, point), and backward,
+// one thread per point summing its views in view order: splat_project.h, the CPU kernel's code.
 // Backward: one thread per (view, pixel) builds the pixel records of dss_cpu.cpp
 // visibility_backward (the loss gradient's projections g . w of the cached attributes, so an
 // evaluation is channel-free); then one thread per (view, point) evaluates the window around the
@@ -23,6 +27,7 @@
 //
 // Only the CUDA runtime is needed here; the torch glue is dss_cuda_bind.cpp.
 #include "dss_cuda.h"
+#include "splat_project.h"
 
 #include <cuda_runtime.h>
 
@@ -466,6 +471,150 @@ __global__ void reduce_views_kernel(const float* __restrict__ P, const double* _
   for (int a = 0; a < 3; ++a) out[k * 3 + a] = (float)gw[a];
 }
 
+__global__ void project_forward_kernel(const float* __restrict__ P, const float* __restrict__ Nrm,
+                                       const float* __restrict__ R, const float* __restrict__ T,
+                                       const float* __restrict__ F, const float* __restrict__ Cc,
+                                       const float* __restrict__ S, int64_t V, int64_t N, float fv, float C2, float zn,
+                                       int culling, float* __restrict__ out) {
+  const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (item >= V * N) return;
+  const int64_t v = item / N, k = item - v * N;
+  dss_splat::project_forward_one(P + k * 3, Nrm + k * 3, R + v * 9, T + v * 3, F[v], Cc[v * 2], Cc[v * 2 + 1], S[k],
+                                 fv, C2, zn, culling != 0, out + item * kFields);
+}
+
+__global__ void project_backward_kernel(const float* __restrict__ P, const float* __restrict__ Nrm,
+                                        const float* __restrict__ R, const float* __restrict__ T,
+                                        const float* __restrict__ F, const float* __restrict__ S,
+                                        const float* __restrict__ PK, const float* __restrict__ GK, int64_t V,
+                                        int64_t N, float fv, float C, float* __restrict__ gp, float* __restrict__ gn) {
+  const int64_t k = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (k >= N) return;
+  // float sums from 0 in view order: the CPU kernel's order, so the same bits
+  float ap[3] = {0.f, 0.f, 0.f}, an[3] = {0.f, 0.f, 0.f};
+  for (int64_t v = 0; v < V; ++v) {
+    const float* g = GK + (v * N + k) * kFields;
+    const float* pk = PK + (v * N + k) * kFields;
+    const dss_splat::SplatGrad sg = dss_splat::project_backward_one(
+        P + k * 3, Nrm + k * 3, R + v * 9, T + v * 3, F[v], S[k], fv, C, g[0], g[1], g[2], g[3], g[4], g[5], g[6],
+        g[7], g[8], pk[7], pk[8], pk[9] > 0.f);
+    for (int a = 0; a < 3; ++a) {
+      ap[a] += sg.gp[a];
+      an[a] += sg.gn[a];
+    }
+  }
+  for (int a = 0; a < 3; ++a) {
+    gp[k * 3 + a] = ap[a];
+    gn[k * 3 + a] = an[a];
+  }
+}
+
+// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward: the same formulas and,
+// per splat, the same row-major pixel order of the double sums). One thread per (view, splat)
+// gathers over the pixels of its cutoff box (the only pixels whose cache can hold it: the
+// rasteriser tests exactly those) the visible cache entries that are this splat. No atomics.
+// Writes dL/dpacked fields 0-5 (u, v, conic a, b2, c, norm; 6-9 zero) and dL/dattrs.
+__global__ void blend_backward_kernel(const float* __restrict__ P, const float* __restrict__ A,
+                                      const int32_t* __restrict__ I, const float* __restrict__ D,
+                                      const float* __restrict__ Rh, const float* __restrict__ IMG,
+                                      const float* __restrict__ GR, int64_t V, int64_t N, int H, int W, int K, int C,
+                                      float merge, float* __restrict__ GP, float* __restrict__ GA) {
+  const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (item >= V * N) return;
+  const int64_t v = item / N;
+  const int32_t k = (int32_t)(item - v * N);
+  const float* s = P + item * kFields;
+  const float* wk = A + item * C;
+  double a[6 + kMaxC];
+  for (int f = 0; f < 6 + C; ++f) a[f] = 0.0;
+  if (s[9] > 0.f) {
+    const Box b = splat_box(s, H, W);
+    for (int i = b.i0; i <= b.i1; ++i) {
+      const float py = (float)i + 0.5f;
+      for (int j = b.j0; j <= b.j1; ++j) {
+        const int64_t g = ((int64_t)v * H + i) * W + j;
+        const int32_t* pi = I + g * K;
+        const float* pd = D + g * K;
+        const float* pr = Rh + g * K;
+        if (pi[0] < 0) continue;
+        const float lim = pd[0] + merge;
+        int nvis = 0, mine = -1;
+        float den = 0.f;
+        for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+          den += pr[e];
+          if (pi[e] == k) mine = e;
+          ++nvis;
+        }
+        if (mine < 0 || !(den > 0.f)) continue;
+        const float* gp = GR + g * C;
+        const float* ip = IMG + g * C;
+        const double rden = 1.0 / (double)den;
+        const float rf = pr[mine];
+        double drho = 0;
+        for (int c = 0; c < C; ++c) {
+          drho += (double)gp[c] * (wk[c] - ip[c]) * rden;
+          a[6 + c] += (double)gp[c] * rf * rden;
+        }
+        const float dx = ((float)j + 0.5f) - s[0], dy = py - s[1];
+        const float q = quad(s[2], s[3], s[4], dx, dy);
+        const double ex = expf(-0.5f * q);  // d rho / d norm, as the forward computed it (float32)
+        a[5] += drho * ex;
+        const double dq = -0.5 * drho * (double)s[5] * ex;
+        a[2] += dq * dx * dx;
+        a[3] += dq * dx * dy;
+        a[4] += dq * dy * dy;
+        a[0] += -dq * (2.0 * s[2] * dx + s[3] * dy);
+        a[1] += -dq * (s[3] * dx + 2.0 * s[4] * dy);
+      }
+    }
+  }
+  float* o = GP + item * kFields;
+  for (int f = 0; f < 6; ++f) o[f] = (float)a[f];
+  for (int f = 6; f < kFields; ++f) o[f] = 0.f;
+  for (int c = 0; c < C; ++c) GA[item * C + c] = (float)a[6 + c];
+}
+
+// Sun shading with one light per channel (dss/shading.py SunLights; dss_cpu.cpp sun_shade_*):
+// w[v, k, l] = (max(n_k . d_vl, 0) + ambient) (x albedo[k, l]); d (V, 3, 3): light l's direction in
+// world space for view v. The CPU kernel's expressions and summation order: the same bits.
+__device__ __forceinline__ float sun_dot(const float* n, const float* d) { return n[0] * d[0] + n[1] * d[1] + n[2] * d[2]; }
+__device__ __forceinline__ float relu_as_std_max(float x) { return x < 0.f ? 0.f : x; }  // std::max(x, 0.f)
+
+__global__ void sun_forward_kernel(const float* __restrict__ Nrm, const float* __restrict__ alb,
+                                   const float* __restrict__ D, int64_t V, int64_t N, float amb,
+                                   float* __restrict__ out) {
+  const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (item >= V * N) return;
+  const int64_t v = item / N, k = item - v * N;
+  for (int l = 0; l < 3; ++l) {
+    const float w = relu_as_std_max(sun_dot(Nrm + k * 3, D + v * 9 + l * 3)) + amb;
+    out[item * 3 + l] = alb ? w * alb[k * 3 + l] : w;
+  }
+}
+
+// One thread per point, views then lights in order (the CPU kernel's per-point order).
+__global__ void sun_backward_kernel(const float* __restrict__ Nrm, const float* __restrict__ alb,
+                                    const float* __restrict__ D, const float* __restrict__ G, int64_t V, int64_t N,
+                                    float amb, float* __restrict__ gn, float* __restrict__ ga) {
+  const int64_t k = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (k >= N) return;
+  float s[3] = {0.f, 0.f, 0.f}, sa[3] = {0.f, 0.f, 0.f};
+  for (int64_t v = 0; v < V; ++v)
+    for (int l = 0; l < 3; ++l) {
+      const float* d = D + v * 9 + l * 3;
+      const float dot = sun_dot(Nrm + k * 3, d);
+      const float gv = G[(v * N + k) * 3 + l];
+      if (ga) sa[l] += gv * (relu_as_std_max(dot) + amb);
+      // torch's clamp_min passes the gradient where its input >= the bound
+      const float gl = dot >= 0.f ? (alb ? gv * alb[k * 3 + l] : gv) : 0.f;
+      for (int a = 0; a < 3; ++a) s[a] += gl * d[a];
+    }
+  for (int a = 0; a < 3; ++a) {
+    gn[k * 3 + a] = s[a];
+    if (ga) ga[k * 3 + a] = sa[a];
+  }
+}
+
 inline unsigned int blocks_for(int64_t n, int threads) { return (unsigned int)((n + threads - 1) / threads); }
 
 inline int tiles_x(int W) { return (W + kTile - 1) / kTile; }
@@ -549,5 +698,57 @@ cudaError_t dss_cuda::launch_reduce_views(const float* packed, const double* par
   if (N == 0) return cudaSuccess;
   const unsigned int blocks = blocks_for(N, kThreads1D);
   DSS_LAUNCH(reduce_views_kernel, blocks, kThreads1D, stream)(packed, partial, V, N, out);
+  return cudaGetLastError();
+}
+
+cudaError_t dss_cuda::launch_project_forward(const float* points, const float* normals, const float* R, const float* t,
+                                             const float* focal, const float* principal, const float* sigma,
+                                             int64_t V, int64_t N, float cutoff, bool culling, float znear,
+                                             float filter_variance, float* packed, cudaStream_t stream) {
+  if (V * N == 0) return cudaSuccess;
+  DSS_LAUNCH(project_forward_kernel, blocks_for(V * N, kThreads1D), kThreads1D, stream)(
+      points, normals, R, t, focal, principal, sigma, V, N, filter_variance, 2.f * cutoff, znear, culling ? 1 : 0,
+      packed);
+  return cudaGetLastError();
+}
+
+cudaError_t dss_cuda::launch_project_backward(const float* points, const float* normals, const float* R,
+                                              const float* t, const float* focal, const float* sigma,
+                                              const float* packed, const float* grad, int64_t V, int64_t N,
+                                              float cutoff, float filter_variance, float* grad_points,
+                                              float* grad_normals, cudaStream_t stream) {
+  if (N == 0) return cudaSuccess;
+  DSS_LAUNCH(project_backward_kernel, blocks_for(N, 128), 128, stream)(points, normals, R, t, focal, sigma, packed,
+                                                                       grad, V, N, filter_variance, cutoff,
+                                                                       grad_points, grad_normals);
+  return cudaGetLastError();
+}
+
+cudaError_t dss_cuda::launch_sun_forward(const float* normals, const float* albedo, const float* dirs, int64_t V,
+                                         int64_t N, float ambient, float* out, cudaStream_t stream) {
+  if (V * N == 0) return cudaSuccess;
+  DSS_LAUNCH(sun_forward_kernel, blocks_for(V * N, kThreads1D), kThreads1D, stream)(normals, albedo, dirs, V, N,
+                                                                                     ambient, out);
+  return cudaGetLastError();
+}
+
+cudaError_t dss_cuda::launch_sun_backward(const float* normals, const float* albedo, const float* dirs,
+                                          const float* grad, int64_t V, int64_t N, float ambient,
+                                          float* grad_normals, float* grad_albedo, cudaStream_t stream) {
+  if (N == 0) return cudaSuccess;
+  DSS_LAUNCH(sun_backward_kernel, blocks_for(N, kThreads1D), kThreads1D, stream)(normals, albedo, dirs, grad, V, N,
+                                                                                  ambient, grad_normals, grad_albedo);
+  return cudaGetLastError();
+}
+
+cudaError_t dss_cuda::launch_blend_backward(const float* packed, const float* attrs, const int32_t* idx,
+                                            const float* depth, const float* rho, const float* images,
+                                            const float* grad, int64_t V, int64_t N, int H, int W, int K, int C,
+                                            float merge, float* grad_packed, float* grad_attrs, cudaStream_t stream) {
+  if (V * N == 0) return cudaSuccess;
+  if (K < 1 || K > kMaxK || C < 1 || C > kMaxC) return cudaErrorInvalidValue;
+  DSS_LAUNCH(blend_backward_kernel, blocks_for(V * N, 128), 128, stream)(packed, attrs, idx, depth, rho, images, grad,
+                                                                         V, N, H, W, K, C, merge, grad_packed,
+                                                                         grad_attrs);
   return cudaGetLastError();
 }

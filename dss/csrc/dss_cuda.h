@@ -21,6 +21,31 @@ constexpr int kTile = 16;     // screen tiles are kTile x kTile pixels, one CUDA
 constexpr int kMaxK = 8;
 constexpr int kMaxC = 16;
 
+// EWA splat projection (dss/splats.py project_splats; splat_project.h, the CPU kernel's code):
+// packed (V, N, 10) from points, normals (N, 3), R (V, 3, 3), t (V, 3), focal (V), principal
+// (V, 2), sigma (N).
+cudaError_t launch_project_forward(const float* points, const float* normals, const float* R, const float* t,
+                                   const float* focal, const float* principal, const float* sigma, int64_t V,
+                                   int64_t N, float cutoff, bool culling, float znear, float filter_variance,
+                                   float* packed, cudaStream_t stream);
+
+// Its backward: grad_points, grad_normals (N, 3) from grad = dL/dpacked (V, N, 10), each point's
+// views summed in view order (float, as the CPU kernel); sigma and the cameras held fixed.
+cudaError_t launch_project_backward(const float* points, const float* normals, const float* R, const float* t,
+                                    const float* focal, const float* sigma, const float* packed, const float* grad,
+                                    int64_t V, int64_t N, float cutoff, float filter_variance, float* grad_points,
+                                    float* grad_normals, cudaStream_t stream);
+
+// Sun shading, one light per channel (dss/shading.py SunLights): out (V, N, 3) from normals (N, 3),
+// albedo (N, 3) or null, dirs (V, 3, 3) (light l of view v in world space, row l).
+cudaError_t launch_sun_forward(const float* normals, const float* albedo, const float* dirs, int64_t V, int64_t N,
+                               float ambient, float* out, cudaStream_t stream);
+
+// Its backward: grad_normals (N, 3) and, unless null, grad_albedo (N, 3) from grad (V, N, 3).
+cudaError_t launch_sun_backward(const float* normals, const float* albedo, const float* dirs, const float* grad,
+                                int64_t V, int64_t N, float ambient, float* grad_normals, float* grad_albedo,
+                                cudaStream_t stream);
+
 // Binning pass 1: counts[v * T + t] += 1 for every tile t touched by the box of splat (v, k).
 // counts (V * T) i32 must be zeroed; T = ceil(H / kTile) * ceil(W / kTile).
 cudaError_t launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
@@ -47,6 +72,14 @@ cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, in
 __host__ __device__
 #endif
 constexpr int64_t vis_record_floats(int K, int C) { return 6 + C + 3 * (int64_t)K; }
+
+// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward): grad_packed (V, N, 10)
+// (fields 0-5; 6-9 zero) and grad_attrs (V, N, C) from grad = dL/dimages (V, H, W, C) and the
+// forward's cache and images. One thread per (view, splat) over the pixels of its box.
+cudaError_t launch_blend_backward(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
+                                  const float* rho, const float* images, const float* grad, int64_t V, int64_t N,
+                                  int H, int W, int K, int C, float merge, float* grad_packed, float* grad_attrs,
+                                  cudaStream_t stream);
 
 // Visibility gradient: one thread per (view, pixel) fills records (V * H * W *
 // vis_record_floats(K, C) f32, workspace: the pixel records of dss_cpu.cpp), then one thread per (view, point): partial

@@ -101,6 +101,44 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   return {idx, depth, rho, images, mask};
 }
 
+// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward): dL/dpacked (V,N,10)
+// (fields 0-5, the rest zero) and dL/dattrs (V,N,C) from dL/dimages and the forward's cache.
+std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
+                                          torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
+                                          torch::Tensor grad, double merge_d) {
+  TORCH_CHECK(packed.dim() == 3 && packed.size(2) == dss_cuda::kFields, "packed splats must be (V,N,10)");
+  TORCH_CHECK(!kOnGpu || packed.is_cuda(), "dss_cuda: packed splats must be a CUDA tensor");
+  TORCH_CHECK(packed.size(1) < INT_MAX, "too many points for int32 indices");
+  TORCH_CHECK(idx.dim() == 4 && idx.scalar_type() == torch::kInt32, "idx must be (V,H,W,K) int32");
+  DSS_DEVICE_GUARD(packed);
+  const auto dev = packed.device();
+  packed = packed.to(torch::kFloat32).contiguous();
+  const int64_t V = packed.size(0), N = packed.size(1), H = idx.size(1), W = idx.size(2), K = idx.size(3);
+  TORCH_CHECK(idx.size(0) == V, "idx must have V = ", V, " views");
+  TORCH_CHECK(K >= 1 && K <= dss_cuda::kMaxK, "K must be in [1, ", dss_cuda::kMaxK, "]");
+  TORCH_CHECK(attrs.dim() == 3 && attrs.size(0) == V && attrs.size(1) == N, "attrs must be (V,N,C)");
+  const int64_t C = attrs.size(2);
+  TORCH_CHECK(C >= 1 && C <= dss_cuda::kMaxC, "1 to ", dss_cuda::kMaxC, " channels, got ", C);
+  attrs = prep(attrs, dev, torch::kFloat32, "attrs");
+  idx = prep(idx, dev, torch::kInt32, "idx");
+  depth = prep(depth, dev, torch::kFloat32, "depth");
+  rho = prep(rho, dev, torch::kFloat32, "rho");
+  images = prep(images, dev, torch::kFloat32, "images");
+  grad = prep(grad, dev, torch::kFloat32, "grad");
+  TORCH_CHECK(depth.sizes() == idx.sizes() && rho.sizes() == idx.sizes(), "depth and rho must be shaped like idx");
+  TORCH_CHECK(images.numel() == V * H * W * C && grad.numel() == V * H * W * C, "images and grad must be (V,H,W,C)");
+  auto gpk = torch::empty({V, N, dss_cuda::kFields}, packed.options());
+  auto gat = torch::empty({V, N, C}, packed.options());
+  check_launch(dss_cuda::launch_blend_backward(packed.data_ptr<float>(), attrs.data_ptr<float>(),
+                                               idx.data_ptr<int32_t>(), depth.data_ptr<float>(),
+                                               rho.data_ptr<float>(), images.data_ptr<float>(),
+                                               grad.data_ptr<float>(), V, N, (int)H, (int)W, (int)K, (int)C,
+                                               (float)merge_d, gpk.data_ptr<float>(), gat.data_ptr<float>(),
+                                               current_stream()),
+               "blend_backward");
+  return {gpk, gat};
+}
+
 // Visibility gradient (paper Eqs. gradcase, filteredG); the rules of dss_cpu.cpp
 // visibility_backward, one thread per (view, point). Returns dL/dp (N,3) f32, world space.
 torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
@@ -161,7 +199,135 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   return out;
 }
 
+namespace {
+
+// The projection's inputs on the points' device, float32, contiguous, with the CPU kernel's checks.
+struct ProjectInputs {
+  torch::Tensor points, normals, R, t, focal, principal, sigma;
+  int64_t V, N;
+};
+
+ProjectInputs project_inputs(torch::Tensor points, torch::Tensor normals, torch::Tensor R, torch::Tensor t,
+                             torch::Tensor focal, torch::Tensor principal, torch::Tensor sigma) {
+  TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "points must be (N,3)");
+  TORCH_CHECK(!kOnGpu || points.is_cuda(), "dss_cuda: points must be a CUDA tensor");
+  TORCH_CHECK(normals.sizes() == points.sizes(), "normals must be shaped like points");
+  const auto dev = points.device();
+  const int64_t N = points.size(0), V = R.size(0);
+  ProjectInputs in{prep(points, dev, torch::kFloat32, "points"), prep(normals, dev, torch::kFloat32, "normals"),
+                   prep(R, dev, torch::kFloat32, "R"), prep(t, dev, torch::kFloat32, "t"),
+                   prep(focal, dev, torch::kFloat32, "focal"), prep(principal, dev, torch::kFloat32, "principal"),
+                   prep(sigma, dev, torch::kFloat32, "sigma"), V, N};
+  TORCH_CHECK(in.R.numel() == V * 9 && in.t.numel() == V * 3 && in.focal.numel() == V &&
+                  in.principal.numel() == V * 2,
+              "camera tensors must have V views");
+  TORCH_CHECK(in.sigma.numel() == 1 || in.sigma.numel() == N, "sigma must be a scalar or (N,)");
+  in.sigma = in.sigma.expand({N}).contiguous();
+  return in;
+}
+
+}  // namespace
+
+// EWA splat projection (dss/splats.py project_splats), forward only: packed (V,N,10) f32.
+torch::Tensor project_splats_forward(torch::Tensor points, torch::Tensor normals, torch::Tensor R, torch::Tensor t,
+                                     torch::Tensor focal, torch::Tensor principal, torch::Tensor sigma, double cutoff,
+                                     bool culling, double znear, double filter_variance) {
+  DSS_DEVICE_GUARD(points);
+  const ProjectInputs in = project_inputs(points, normals, R, t, focal, principal, sigma);
+  auto out = torch::empty({in.V, in.N, dss_cuda::kFields}, in.points.options());
+  check_launch(dss_cuda::launch_project_forward(
+                   in.points.data_ptr<float>(), in.normals.data_ptr<float>(), in.R.data_ptr<float>(),
+                   in.t.data_ptr<float>(), in.focal.data_ptr<float>(), in.principal.data_ptr<float>(),
+                   in.sigma.data_ptr<float>(), in.V, in.N, (float)cutoff, culling, (float)znear,
+                   (float)filter_variance, out.data_ptr<float>(), current_stream()),
+               "project_forward");
+  return out;
+}
+
+// Its backward: dL/dpoints, dL/dnormals (N,3) f32 from dL/dpacked (V,N,10), sigma and cameras fixed.
+std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::Tensor normals, torch::Tensor R,
+                                                   torch::Tensor t, torch::Tensor focal, torch::Tensor principal,
+                                                   torch::Tensor sigma, torch::Tensor packed, torch::Tensor grad,
+                                                   double cutoff, double filter_variance) {
+  DSS_DEVICE_GUARD(points);
+  const ProjectInputs in = project_inputs(points, normals, R, t, focal, principal, sigma);
+  const auto dev = in.points.device();
+  packed = prep(packed, dev, torch::kFloat32, "packed");
+  grad = prep(grad, dev, torch::kFloat32, "grad");
+  TORCH_CHECK(packed.dim() == 3 && packed.size(0) == in.V && packed.size(1) == in.N &&
+                  packed.size(2) == dss_cuda::kFields,
+              "packed must be (V,N,10)");
+  TORCH_CHECK(grad.sizes() == packed.sizes(), "grad must be shaped like packed");
+  auto gp = torch::empty({in.N, 3}, in.points.options());
+  auto gn = torch::empty({in.N, 3}, in.points.options());
+  check_launch(dss_cuda::launch_project_backward(
+                   in.points.data_ptr<float>(), in.normals.data_ptr<float>(), in.R.data_ptr<float>(),
+                   in.t.data_ptr<float>(), in.focal.data_ptr<float>(), in.sigma.data_ptr<float>(),
+                   packed.data_ptr<float>(), grad.data_ptr<float>(), in.V, in.N, (float)cutoff,
+                   (float)filter_variance, gp.data_ptr<float>(), gn.data_ptr<float>(), current_stream()),
+               "project_backward");
+  return {gp, gn};
+}
+
+namespace {
+
+// The sun shader's inputs on the normals' device, float32, contiguous, with the CPU kernel's checks.
+std::vector<torch::Tensor> sun_inputs(torch::Tensor normals, torch::Tensor albedo, torch::Tensor dirs) {
+  TORCH_CHECK(normals.dim() == 2 && normals.size(1) == 3, "normals must be (N, 3)");
+  TORCH_CHECK(!kOnGpu || normals.is_cuda(), "dss_cuda: normals must be a CUDA tensor");
+  const auto dev = normals.device();
+  normals = prep(normals, dev, torch::kFloat32, "normals");
+  dirs = prep(dirs, dev, torch::kFloat32, "dirs");
+  TORCH_CHECK(dirs.dim() == 3 && dirs.size(1) == 3 && dirs.size(2) == 3, "dirs must be (V, 3, 3)");
+  if (albedo.numel() > 0) {
+    albedo = prep(albedo, dev, torch::kFloat32, "albedo");
+    TORCH_CHECK(albedo.dim() == 2 && albedo.size(0) == normals.size(0) && albedo.size(1) == 3, "albedo must be (N, 3)");
+  }
+  return {normals, albedo, dirs};
+}
+
+}  // namespace
+
+// Sun shading, one light per channel: (V,N,3) f32.
+torch::Tensor sun_shade_forward(torch::Tensor normals, torch::Tensor albedo, torch::Tensor dirs, double ambient) {
+  DSS_DEVICE_GUARD(normals);
+  const auto in = sun_inputs(normals, albedo, dirs);
+  const int64_t V = in[2].size(0), N = in[0].size(0);
+  const bool has_alb = in[1].numel() > 0;
+  auto out = torch::empty({V, N, 3}, in[0].options());
+  check_launch(dss_cuda::launch_sun_forward(in[0].data_ptr<float>(), has_alb ? in[1].data_ptr<float>() : nullptr,
+                                            in[2].data_ptr<float>(), V, N, (float)ambient, out.data_ptr<float>(),
+                                            current_stream()),
+               "sun_forward");
+  return out;
+}
+
+// Its backward: dL/dnormals (N,3) and, with albedo and need_albedo, dL/dalbedo (N,3) (else empty).
+std::vector<torch::Tensor> sun_shade_backward(torch::Tensor normals, torch::Tensor albedo, torch::Tensor dirs,
+                                              double ambient, torch::Tensor grad, bool need_albedo) {
+  DSS_DEVICE_GUARD(normals);
+  const auto in = sun_inputs(normals, albedo, dirs);
+  const int64_t V = in[2].size(0), N = in[0].size(0);
+  const bool has_alb = in[1].numel() > 0;
+  need_albedo = need_albedo && has_alb;
+  grad = prep(grad, in[0].device(), torch::kFloat32, "grad");
+  TORCH_CHECK(grad.dim() == 3 && grad.size(0) == V && grad.size(1) == N && grad.size(2) == 3, "grad must be (V, N, 3)");
+  auto gn = torch::empty({N, 3}, in[0].options());
+  auto ga = need_albedo ? torch::empty({N, 3}, in[0].options()) : torch::empty({0}, in[0].options());
+  check_launch(dss_cuda::launch_sun_backward(in[0].data_ptr<float>(), has_alb ? in[1].data_ptr<float>() : nullptr,
+                                             in[2].data_ptr<float>(), grad.data_ptr<float>(), V, N, (float)ambient,
+                                             gn.data_ptr<float>(), need_albedo ? ga.data_ptr<float>() : nullptr,
+                                             current_stream()),
+               "sun_backward");
+  return {gn, ga};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("sun_shade_forward", &sun_shade_forward, "sun shading, one light per channel (CUDA)");
+  m.def("sun_shade_backward", &sun_shade_backward, "backward of sun_shade_forward (CUDA)");
+  m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CUDA)");
+  m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CUDA)");
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CUDA, tile binned)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CUDA)");
+  m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CUDA)");
 }

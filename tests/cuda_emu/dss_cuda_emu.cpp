@@ -36,4 +36,35 @@ int emu_reduce_views(const float* packed, const double* partial, int64_t V, int6
   return dss_cuda::launch_reduce_views(packed, partial, V, N, out, nullptr);
 }
 
+int emu_project_forward(const float* points, const float* normals, const float* R, const float* t, const float* focal,
+                        const float* principal, const float* sigma, int64_t V, int64_t N, float cutoff, int culling,
+                        float znear, float filter_variance, float* packed) {
+  return dss_cuda::launch_project_forward(points, normals, R, t, focal, principal, sigma, V, N, cutoff, culling != 0,
+                                          znear, filter_variance, packed, nullptr);
+}
+
+int emu_project_backward(const float* points, const float* normals, const float* R, const float* t, const float* focal,
+                         const float* sigma, const float* packed, const float* grad, int64_t V, int64_t N, float cutoff,
+                         float filter_variance, float* grad_points, float* grad_normals) {
+  return dss_cuda::launch_project_backward(points, normals, R, t, focal, sigma, packed, grad, V, N, cutoff,
+                                           filter_variance, grad_points, grad_normals, nullptr);
+}
+
+int emu_sun_forward(const float* normals, const float* albedo, const float* dirs, int64_t V, int64_t N, float ambient,
+                    float* out) {
+  return dss_cuda::launch_sun_forward(normals, albedo, dirs, V, N, ambient, out, nullptr);
+}
+
+int emu_sun_backward(const float* normals, const float* albedo, const float* dirs, const float* grad, int64_t V,
+                     int64_t N, float ambient, float* grad_normals, float* grad_albedo) {
+  return dss_cuda::launch_sun_backward(normals, albedo, dirs, grad, V, N, ambient, grad_normals, grad_albedo, nullptr);
+}
+
+int emu_blend_backward(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
+                       const float* rho, const float* images, const float* grad, int64_t V, int64_t N, int H, int W,
+                       int K, int C, float merge, float* grad_packed, float* grad_attrs) {
+  return dss_cuda::launch_blend_backward(packed, attrs, idx, depth, rho, images, grad, V, N, H, W, K, C, merge,
+                                         grad_packed, grad_attrs, nullptr);
+}
+
 }  // extern "C"

@@ -1,0 +1,150 @@
+// EWA splat projection of one (view, point): the formulas of dss/splats.py project_splats, shared
+// by the CPU kernel (dss_cpu.cpp, vectorised loops over points) and the CUDA kernel (dss_cuda.cu,
+// a thread per point). float32 in the torch expressions' order; both are built without
+// contraction (g++ -ffp-contract=off, nvcc --fmad=false) and with IEEE division and square root,
+// so the CPU and the GPU give the same bits.
+//
+// Packed fields (dss/splats.py): u v conic_a conic_b2 conic_c norm depth rx ry valid.
+#pragma once
+
+#include <cmath>
+
+#if defined(__CUDACC__) || defined(DSS_EMU_KERNELS)
+#define DSS_SPLAT_FN __host__ __device__ __forceinline__
+#else
+#define DSS_SPLAT_FN inline __attribute__((always_inline))
+#endif
+
+namespace dss_splat {
+
+struct SplatGeometry {
+  float X, Y, Z, Zs, nc[3], inv, nh[3], m1[3], m2[3], m1n, m2n, A11, A12, A22, w, detJ, s2, S11, S12, S22, detS;
+};
+
+// Camera-frame position and normal, the local affine map's rows m1, m2 (paper Eq. J), the
+// screen-space covariance S = s^2 A + fv I and its determinant. p, n: world (3); Rv (3x3), tv (3):
+// the view's world-to-camera rotation and translation; f: focal (px); zn: near plane (a point
+// behind it is projected with Z = 1 so that its values stay finite; it is not valid anyway).
+DSS_SPLAT_FN SplatGeometry splat_geometry(const float* p, const float* n, const float* Rv, const float* tv, float f,
+                                          float sigma, float fv, float zn) {
+  SplatGeometry g;
+  float pc[3];
+  for (int a = 0; a < 3; ++a) {
+    pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + tv[a];
+    g.nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
+  }
+  g.X = pc[0], g.Y = pc[1], g.Z = pc[2];
+  const float Zs = g.Z > zn ? g.Z : 1.f;
+  g.Zs = Zs;
+  const float nl2 = g.nc[0] * g.nc[0] + g.nc[1] * g.nc[1] + g.nc[2] * g.nc[2];
+  g.inv = 1.f / sqrtf(nl2 + 1e-20f);
+  for (int a = 0; a < 3; ++a) g.nh[a] = g.nc[a] * g.inv;
+  g.m1[0] = f / Zs, g.m1[1] = 0.f, g.m1[2] = -f * g.X / (Zs * Zs);
+  g.m2[0] = 0.f, g.m2[1] = f / Zs, g.m2[2] = -f * g.Y / (Zs * Zs);
+  g.m1n = g.m1[0] * g.nh[0] + g.m1[2] * g.nh[2];
+  g.m2n = g.m2[1] * g.nh[1] + g.m2[2] * g.nh[2];
+  g.A11 = g.m1[0] * g.m1[0] + g.m1[2] * g.m1[2] - g.m1n * g.m1n;
+  g.A12 = g.m1[2] * g.m2[2] - g.m1n * g.m2n;
+  g.A22 = g.m2[1] * g.m2[1] + g.m2[2] * g.m2[2] - g.m2n * g.m2n;
+  g.w = g.nh[0] * g.X + g.nh[1] * g.Y + g.nh[2] * Zs;
+  g.detJ = f * f * fabsf(g.w) / (Zs * Zs * Zs);
+  g.s2 = sigma * sigma;
+  g.S11 = g.s2 * g.A11 + fv, g.S12 = g.s2 * g.A12, g.S22 = g.s2 * g.A22 + fv;
+  g.detS = g.s2 * g.s2 * (g.detJ * g.detJ) + g.s2 * fv * (g.A11 + g.A22) + fv * fv;
+  return g;
+}
+
+// The 10 packed fields of one splat into o. Straight-line code (the branches are selects) so
+// that the CPU kernel's loop over points vectorises. C2 = 2 * cutoff.
+DSS_SPLAT_FN void project_forward_one(const float* p, const float* n, const float* Rv, const float* tv, float f,
+                                      float cx, float cy, float sigma, float fv, float C2, float zn, bool culling,
+                                      float* o) {
+  const SplatGeometry g = splat_geometry(p, n, Rv, tv, f, sigma, fv, zn);
+  const float X = g.X, Y = g.Y, Z = g.Z, Zs = g.Zs, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+  o[0] = f * X / Zs + cx;
+  o[1] = f * Y / Zs + cy;
+  o[2] = S22 / detS;
+  o[3] = -2.f * S12 / detS;
+  o[4] = S11 / detS;
+  o[5] = g.detJ / (2.f * 3.14159265358979f * sqrtf(detS));
+  o[6] = Z;
+  o[7] = sqrtf(C2 * S11);
+  o[8] = sqrtf(C2 * S22);
+  // valid: in front of the near plane and (without culling, or) facing the camera
+  const int front = Z > zn, facing = (g.nc[0] * X + g.nc[1] * Y + g.nc[2] * Z) < 0.f;
+  o[9] = (front & (facing | !culling)) ? 1.f : 0.f;
+}
+
+struct SplatGrad {
+  float gp[3], gn[3];  // dL/dp, dL/dn (world frame)
+};
+
+// dL/dp and dL/dn of one splat from dL/dpacked fields 0-8 (gu .. gry); the valid flag is a step
+// function. rx, ry: the splat's packed fields 7 and 8; C = cutoff. A splat that is not valid gets
+// zeros (the renderer never reads it); its values are still computed, so the CPU loop stays
+// straight-line. Scalars in, a struct out (no pointers): the CPU loop over points vectorises.
+DSS_SPLAT_FN SplatGrad project_backward_one(const float* p, const float* n, const float* Rv, const float* tv,
+                                            float f, float sigma, float fv, float C, float gu, float gv, float ga,
+                                            float gb2, float gc, float gnorm, float gz, float grx, float gry,
+                                            float rx, float ry, bool valid) {
+  // valid splats only (Z > znear): no near-plane substitute for Z
+  const SplatGeometry g = splat_geometry(p, n, Rv, tv, f, sigma, fv, -INFINITY);
+  const float X = g.X, Y = g.Y, Z = g.Z, iZ = 1.f / Z, inv = g.inv, w = g.w, detJ = g.detJ, s2 = g.s2;
+  const float m1n = g.m1n, m2n = g.m2n, S11 = g.S11, S12 = g.S12, S22 = g.S22, detS = g.detS;
+  // (copies, not pointers into g: g then stays in registers and the CPU loop vectorises)
+  const float nc[3] = {g.nc[0], g.nc[1], g.nc[2]}, nh[3] = {g.nh[0], g.nh[1], g.nh[2]};
+  const float m1[3] = {g.m1[0], g.m1[1], g.m1[2]}, m2[3] = {g.m2[0], g.m2[1], g.m2[2]};
+  const float iS = 1.f / detS;
+  const float sqS = sqrtf(detS);
+  const float k2pi = 1.f / (2.f * 3.14159265358979f);
+  float gS11 = gc * iS, gS22 = ga * iS, gS12 = -2.f * gb2 * iS;
+  // rx = sqrt(2 C S11), ry = sqrt(2 C S22)
+  gS11 = rx > 0.f ? gS11 + grx * C / rx : gS11;
+  gS22 = ry > 0.f ? gS22 + gry * C / ry : gS22;
+  const float gdetS = -(ga * S22 - 2.f * gb2 * S12 + gc * S11) * iS * iS - 0.5f * gnorm * detJ * k2pi * iS / sqS;
+  const float gdetJ = gnorm * k2pi / sqS + gdetS * s2 * s2 * 2.f * detJ;
+  const float gA11 = s2 * gS11 + gdetS * s2 * fv, gA22 = s2 * gS22 + gdetS * s2 * fv, gA12 = s2 * gS12;
+  float gm1[3], gm2[3];
+  for (int c = 0; c < 3; ++c) {
+    gm1[c] = 2.f * gA11 * m1[c] + gA12 * m2[c];
+    gm2[c] = 2.f * gA22 * m2[c] + gA12 * m1[c];
+  }
+  const float gm1n = -2.f * gA11 * m1n - gA12 * m2n;
+  const float gm2n = -2.f * gA22 * m2n - gA12 * m1n;
+  float gnh[3];
+  for (int c = 0; c < 3; ++c) {
+    gm1[c] += gm1n * nh[c];
+    gm2[c] += gm2n * nh[c];
+    gnh[c] = gm1n * m1[c] + gm2n * m2[c];
+  }
+  // detJ = f^2 |w| / Z^3
+  const float gw = gdetJ * f * f * (w > 0.f ? 1.f : (w < 0.f ? -1.f : 0.f)) * iZ * iZ * iZ;
+  gnh[0] += gw * X;
+  gnh[1] += gw * Y;
+  gnh[2] += gw * Z;
+  float gX = gw * nh[0], gY = gw * nh[1];
+  float gZ = gw * nh[2] - 3.f * gdetJ * detJ * iZ + gz;
+  // m1 = f (1/Z, 0, -X/Z^2), m2 = f (0, 1/Z, -Y/Z^2)
+  gZ += -(gm1[0] + gm2[1]) * f * iZ * iZ + 2.f * f * (gm1[2] * X + gm2[2] * Y) * iZ * iZ * iZ;
+  gX += -gm1[2] * f * iZ * iZ;
+  gY += -gm2[2] * f * iZ * iZ;
+  // u = f X / Z + cx, v = f Y / Z + cy
+  gX += gu * f * iZ;
+  gY += gv * f * iZ;
+  gZ += -(gu * X + gv * Y) * f * iZ * iZ;
+  // nh = nc / sqrt(|nc|^2 + 1e-20)
+  const float dn = gnh[0] * nc[0] + gnh[1] * nc[1] + gnh[2] * nc[2];
+  float gnc[3];
+  for (int c = 0; c < 3; ++c) gnc[c] = inv * gnh[c] - inv * inv * inv * dn * nc[c];
+  const float gpc[3] = {gX, gY, gZ};
+  SplatGrad out;
+  for (int c = 0; c < 3; ++c) {  // world = R^T camera
+    const float op = Rv[0 * 3 + c] * gpc[0] + Rv[1 * 3 + c] * gpc[1] + Rv[2 * 3 + c] * gpc[2];
+    const float on = Rv[0 * 3 + c] * gnc[0] + Rv[1 * 3 + c] * gnc[1] + Rv[2 * 3 + c] * gnc[2];
+    out.gp[c] = valid ? op : 0.f;
+    out.gn[c] = valid ? on : 0.f;
+  }
+  return out;
+}
+
+}  // namespace dss_splat

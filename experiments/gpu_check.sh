@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Everything that needs a CUDA GPU, in one go (a lent GPU machine is held for minutes, not hours):
+# build the CUDA kernels, run the `gpu` tests, read the compiler's resource report, time the
+# kernels and the render step (experiments/bench_gpu.py) and make the paper's runtime table's CUDA
+# column (experiments/runtime_table.py). Run from the repository root on the GPU machine:
+#
+#     OUT=/tmp/gpu bash experiments/gpu_check.sh            # all stages
+#     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, bench, table
+#     AB_BASE=/path/to/old/tree OUT=/tmp/gpu bash experiments/gpu_check.sh ab   # A/B of the render step
+#
+# Needs python3 with torch (CUDA build), pytest, numpy, scipy, tqdm; nvcc and ninja. No open3d:
+# set DSS_BENCH_CLOUDS to a folder of clouds sampled on a machine that has it (see
+# experiments/bench_render.py benchmark_cloud) to time the same kangaroo clouds as the CPU tables.
+# Each stage's output goes to $OUT/<stage>.txt; the JSONs to $OUT. A failing stage does not stop
+# the later ones; the exit status is the number of failed stages.
+set -uo pipefail
+OUT=${OUT:-results/gpu}
+mkdir -p "$OUT"
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
+export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/dss_torch_extensions}
+export MAX_JOBS=${MAX_JOBS:-$(nproc)}
+PY=${PYTHON:-python3}
+STAGES=${*:-env tests ptxas bench table}
+failed=0
+
+stage() {  # stage NAME SECONDS CMD...: run with a time limit, log to $OUT/NAME.txt
+  local name=$1 limit=$2
+  shift 2
+  echo "=== $name ($(date -u +%H:%M:%S))"
+  timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
+  local rc=$?
+  if [ $rc -ne 0 ]; then
+    echo "!!! $name failed (exit $rc)"
+    failed=$((failed + 1))
+  fi
+  tail -n "${TAIL:-15}" "$OUT/$name.txt"
+}
+
+for s in $STAGES; do
+  case $s in
+  env)
+    stage env 60 bash -c "nvidia-smi; $PY -V; nvcc --version; $PY -c 'import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))'"
+    ;;
+  tests)  # builds both modules (CPU kernel for the comparisons), then every gpu-marked test
+    stage tests 420 "$PY" -m pytest -p no:cacheprovider -q -m gpu -ra tests/test_cuda_build.py tests/test_render_cuda.py tests/test_render_backward.py
+    ;;
+  ptxas)  # registers, shared memory, spills of every kernel for this GPU
+    stage ptxas 180 nvcc -c -std=c++17 -O3 --fmad=false -arch=native -Xptxas -v -I dss/csrc \
+      dss/csrc/dss_cuda.cu -o /tmp/dss_cuda_ptxas.o
+    ;;
+  bench)
+    stage bench 300 "$PY" -m experiments.bench_gpu --points 20000 100000 --repeats 20 --profile --out "$OUT/bench_gpu.json"
+    ;;
+  ab)  # the render step of the dss in $AB_BASE (another revision's files) against this tree's, 3 rounds alternating
+    stage ab 500 bash -c "for r in 1 2 3; do for t in \"\$AB_BASE\" .; do TORCH_EXTENSIONS_DIR=$TORCH_EXTENSIONS_DIR/\$(basename \"\$t\") PYTHONPATH=\"\$t\":$PWD $PY experiments/ab_gpu.py --label \"\$t\" || exit 1; done; done"
+    ;;
+  table)
+    stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda"
+    ;;
+  *)
+    echo "unknown stage $s (env, tests, ptxas, bench, table, ab)"
+    failed=$((failed + 1))
+    ;;
+  esac
+done
+exit $failed
