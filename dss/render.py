@@ -6,11 +6,13 @@ Stages (each usable on its own):
 2. a rasteriser backend — splats -> per-pixel top-K cache (:class:`Fragments`), and the image
    when no gradient is needed (``reference``: pure torch; ``cpp``: C++/OpenMP kernel; ``cuda``:
    tile-binned CUDA kernels, the same formulas).
-3. :func:`dss.shading.shade` — per-view point attributes w_k (torch).
-4. blending (Eq. sumI). With gradients enabled, the weights of the visible cached fragments are
-   recomputed with differentiable torch ops, so autograd supplies the smooth terms of Eqs. gradN
-   and gradP (through w_k and rho_bar); a custom autograd function adds the visibility term of
-   Eq. gradP for positions (:mod:`dss.visibility`).
+3. :func:`dss.shading.shade` — per-view point attributes w_k (torch; the sun lights run as a
+   kernel on ``cpp`` and ``cuda``, :class:`_KernelSunShade`).
+4. blending (Eq. sumI). With gradients enabled, ``reference`` recomputes the weights of the
+   visible cached fragments with differentiable torch ops, so autograd supplies the smooth terms
+   of Eqs. gradN and gradP (through w_k and rho_bar); ``cpp`` and ``cuda`` compute those terms
+   with the kernels' blend backward (:class:`_KernelBlend`). The visibility term of Eq. gradP for
+   positions is added by a custom autograd function on every backend (:mod:`dss.visibility`).
 """
 
 from __future__ import annotations
