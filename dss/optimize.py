@@ -542,8 +542,8 @@ class MultiViewOptimizer:
             if cams is None or c.resample_every_cycle:
                 if cycle >= c.cycles and cams is not None:
                     cams = self._error_aware(cams, gen)
-                else:
-                    cams = self.sampler.sample()
+                else:  # on the points' device: the renders and the reference see one device
+                    cams = self.sampler.sample().to(self.points.device)
             with torch.no_grad():
                 target = self.reference(cams).detach()
             self._cycle_decay = c.lr_decay ** cycle
@@ -583,7 +583,8 @@ class MultiViewOptimizer:
             out = render(self.points.detach(), self.normals.detach(), cams, self.settings, shading=self.shading, backend=self.backend)
             target = self.reference(cams)
             residual = (out.images - target).abs().sum(-1)
-        new, focus = error_aware_cameras(self.points.detach(), cams, residual, self.cfg.views,
+        # the view choice is a few small CPU computations (and its generator is a CPU one)
+        new, focus = error_aware_cameras(self.points.detach().cpu(), cams.to("cpu"), residual.cpu(), self.cfg.views,
                                          distance=self.cfg.error_aware_distance, generator=gen)
         log.info("error-aware views around %s", [round(x, 3) for x in focus.tolist()])
-        return new
+        return new.to(self.points.device)

@@ -383,10 +383,13 @@ def _check_inputs(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras)
         raise ValueError("cannot render an empty point cloud")
     if normals is None or normals.shape != points.shape:
         raise ValueError(f"normals must be (N, 3) like points; got {None if normals is None else tuple(normals.shape)}")
-    if not torch.isfinite(points).all() or not torch.isfinite(normals).all():
-        raise ValueError("points/normals contain NaN or inf; drop those rows first (dss.pointcloud.finite_rows)")
     if not isinstance(cameras, Cameras):
         raise TypeError("cameras must be a dss.cameras.Cameras")
+    if points.device != normals.device or points.device != cameras.R.device:
+        raise ValueError(f"points ({points.device}), normals ({normals.device}) and cameras ({cameras.R.device}) must be "
+                         "on one device (cameras.to(points.device))")
+    if not torch.isfinite(points).all() or not torch.isfinite(normals).all():
+        raise ValueError("points/normals contain NaN or inf; drop those rows first (dss.pointcloud.finite_rows)")
     if not (points.is_floating_point() and normals.is_floating_point() and cameras.R.is_floating_point()):
         raise ValueError(f"points ({points.dtype}), normals ({normals.dtype}) and cameras ({cameras.R.dtype}) "
                          "must be floating-point tensors")

@@ -205,6 +205,12 @@ def test_cuda_backend_needs_cuda_tensors():
         render(torch.zeros(3, 3), torch.zeros(3, 3), cams, backend="cuda")
 
 
+def test_points_and_cameras_on_different_devices_are_refused():
+    cams = axis_camera(8, 8)
+    with pytest.raises(ValueError, match=r"must be on one device \(cameras.to\(points.device\)\)"):
+        render(torch.zeros(3, 3, device="meta"), torch.zeros(3, 3, device="meta"), cams)
+
+
 def test_reused_output_blocks_are_fully_rewritten(cpp_backend):
     """The C++ kernels hand out parked output blocks again once nothing refers to them
     (dss_cpu.cpp pooled_empty). A dense render followed by a sparse one of the same size must

@@ -35,7 +35,7 @@ void check_launch(cudaError_t err, const char* what) {
 
 // Same device as the splats, float32 (or the given type), contiguous.
 torch::Tensor prep(const torch::Tensor& t, const torch::Device& dev, torch::ScalarType type, const char* name) {
-  TORCH_CHECK(t.device() == dev, "dss_cuda: ", name, " is on ", t.device(), " but the splats are on ", dev);
+  TORCH_CHECK(t.device() == dev, "dss_cuda: ", name, " is on ", t.device(), " but the other inputs are on ", dev);
   return t.to(type).contiguous();
 }
 
