@@ -80,13 +80,22 @@ def capture_inputs(kind: str, n_points: int, views: int, size: int) -> dict:
     return captured
 
 
-def build(name: str, source_text: str, workdir: Path):
-    """Build one revision's kernel source as module ``name`` with the package's flags."""
+def build(name: str, source_text: str, workdir: Path, headers: dict[str, str] | None = None):
+    """Build one revision's kernel source as module ``name`` with the package's flags.
+
+    ``headers`` (file name -> text): that revision's ``dss/csrc/*.h``, written beside the source
+    so that its ``#include "..."`` finds them (default: the working tree's)."""
     from torch.utils.cpp_extension import load
 
     from dss._ext import _BASE_CFLAGS, _CSRC, _OPENMP_FLAGS, CPU_SOURCES
 
-    src = workdir / f"{name}.cpp"
+    src_dir = workdir / f"src_{name}"
+    src_dir.mkdir(exist_ok=True)
+    if headers is None:
+        headers = {h.name: h.read_text() for h in _CSRC.glob("*.h")}
+    for fname, text in headers.items():
+        (src_dir / fname).write_text(text)
+    src = src_dir / f"{name}.cpp"
     src.write_text(source_text)
     build_dir = workdir / f"build_{name}"
     build_dir.mkdir(exist_ok=True)
@@ -95,6 +104,15 @@ def build(name: str, source_text: str, workdir: Path):
     extra = [str(_CSRC / f) for f in CPU_SOURCES if f != Path(SOURCE).name]
     return load(name=name, sources=[str(src), *extra], extra_cflags=_BASE_CFLAGS + _OPENMP_FLAGS,
                 extra_ldflags=_OPENMP_FLAGS, build_directory=str(build_dir), verbose=False)
+
+
+def git_headers(rev: str) -> dict[str, str]:
+    """The revision's ``dss/csrc/*.h`` (file name -> text)."""
+    folder = str(Path(SOURCE).parent)
+    names = subprocess.run(["git", "ls-tree", "--name-only", f"{rev}:{folder}"], cwd=REPO, check=True,
+                           capture_output=True, text=True).stdout.split()
+    return {n: subprocess.run(["git", "show", f"{rev}:{folder}/{n}"], cwd=REPO, check=True, capture_output=True,
+                              text=True).stdout for n in names if n.endswith(".h")}
 
 
 def git_source(rev: str) -> str:
@@ -138,7 +156,8 @@ def run(argv=None) -> dict:
     sources = {"base": work_text if args.base == "scalar" else git_source(args.base), "work": work_text}
     times: dict = {k: [] for k in sources}
     with tempfile.TemporaryDirectory() as tmp:
-        mods = {k: build(f"dss_ab_{k}", text, Path(tmp)) for k, text in sources.items()}
+        headers = {"base": None if args.base == "scalar" else git_headers(args.base), "work": None}
+        mods = {k: build(f"dss_ab_{k}", text, Path(tmp), headers[k]) for k, text in sources.items()}
         if args.base == "scalar":
             mods["base"].set_vector_path(False)
         for _ in range(args.reps):

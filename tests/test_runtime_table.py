@@ -84,6 +84,23 @@ def test_cuda_column_without_gpu(quick):
         assert r["cuda"]["status"] == "not measured (no GPU)"
 
 
+def test_benchmark_clouds_can_be_cached(tmp_path, monkeypatch):
+    """DSS_BENCH_CLOUDS: the first call samples and writes the cloud, the next reads it back
+    (a machine without open3d or ../shared then times the same cloud)."""
+    from experiments.bench_render import benchmark_cloud
+
+    monkeypatch.setenv("DSS_BENCH_CLOUDS", str(tmp_path / "clouds"))
+    p, n, src = benchmark_cloud(300, seed=3)
+    f = tmp_path / "clouds" / "cloud_300_3.npz"
+    assert f.is_file() and "read from" not in src
+    assert not list((tmp_path / "clouds").glob("*.tmp*"))
+    p2, n2, src2 = benchmark_cloud(300, seed=3)
+    assert torch.equal(p, p2) and torch.equal(n, n2)
+    assert src2.startswith(src) and str(f) in src2
+    monkeypatch.delenv("DSS_BENCH_CLOUDS")
+    assert torch.equal(benchmark_cloud(300, seed=3)[0], p)  # the cache holds what sampling gives
+
+
 def test_bad_points_count_is_rejected():
     with pytest.raises(SystemExit):
         rt.parse_args(["--workloads", "deformation", "filtering", "--points", "100"])
@@ -173,7 +190,7 @@ def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
     processes with their own kernel builds (two builds: ~2-3 min) and removes the worktree."""
     import subprocess
 
-    from experiments import ab_steps
+    from experiments import ab_steps, bench_common
 
     out = tmp_path / "steps.json"
     r = ab_steps.run(["--base", "HEAD", "--kinds", "normal", "--points", "400", "--views", "2", "--image-size", "32",
@@ -181,7 +198,7 @@ def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
     s = r["summary"]["normal"]
     assert s["base"]["step_ms"] > 0 and s["work"]["step_ms"] > 0 and s["speedup"] > 0
     assert len(r["children"]["normal"]["base"]) == 1 and json.loads(out.read_text())["base"] == "HEAD"
-    worktrees = subprocess.run(["git", "worktree", "list"], cwd=ab_steps.REPO, capture_output=True, text=True).stdout
+    worktrees = subprocess.run(["git", "worktree", "list"], cwd=bench_common.REPO, capture_output=True, text=True).stdout
     assert "dss_ab_steps_" not in worktrees
 
 
