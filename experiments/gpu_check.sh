@@ -5,7 +5,7 @@
 # column (experiments/runtime_table.py). Run from the repository root on the GPU machine:
 #
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh            # all stages
-#     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, bench, table
+#     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table
 #     AB_BASE=/path/to/old/tree OUT=/tmp/gpu bash experiments/gpu_check.sh ab   # A/B of the render step
 #
 # Needs python3 with torch (CUDA build), pytest, numpy, scipy, tqdm; nvcc and ninja. No open3d:
@@ -20,7 +20,7 @@ export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/dss_torch_extensions}
 export MAX_JOBS=${MAX_JOBS:-$(nproc)}
 PY=${PYTHON:-python3}
-STAGES=${*:-env tests ptxas bench table}
+STAGES=${*:-env tests ptxas rates bench table}
 failed=0
 
 stage() {  # stage NAME SECONDS CMD...: run with a time limit, log to $OUT/NAME.txt
@@ -54,11 +54,14 @@ for s in $STAGES; do
   ab)  # the render step of the dss in $AB_BASE (another revision's files) against this tree's, 3 rounds alternating
     stage ab 500 bash -c "for r in 1 2 3; do for t in \"\$AB_BASE\" .; do TORCH_EXTENSIONS_DIR=$TORCH_EXTENSIONS_DIR/\$(basename \"\$t\") PYTHONPATH=\"\$t\":$PWD $PY experiments/ab_gpu.py --label \"\$t\" || exit 1; done; done"
     ;;
+  rates)  # the GPU's own ceilings (FP32 matmul, device copy) and the counted workloads' floors on them
+    stage rates 120 "$PY" -m experiments.perf_counts --gpu-rates "$OUT/gpu_rates.json"
+    ;;
   table)
     stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda"
     ;;
   *)
-    echo "unknown stage $s (env, tests, ptxas, bench, table, ab)"
+    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, ab)"
     failed=$((failed + 1))
     ;;
   esac

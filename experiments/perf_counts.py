@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
 import numpy as np
@@ -86,6 +87,51 @@ def measure_rates(seconds: float = 1.0) -> dict:
             "note": "fastest call of each over ~1 s: flops: float32 matmul (torch, all threads) = the arithmetic "
                     "peak; bytes: the faster of a numpy copy (one thread) and a torch copy (all threads), "
                     "read + write"}
+
+
+def measure_gpu_rates(seconds: float = 1.0, device: str = "cuda") -> dict:
+    """Peak float32 arithmetic rate (an 8192^3 matmul with TF32 off: the CUDA cores' FP32, the
+    unit the kernels use) and device-to-device copy bandwidth (1 GiB, read + write bytes) of a
+    GPU, each the fastest of repeated synchronised calls over about ``seconds``."""
+    dev = torch.device(device)
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        n = 8192
+        g = torch.Generator(device=dev).manual_seed(0)
+        a = torch.rand(n, n, device=dev, generator=g)
+        b = torch.rand(n, n, device=dev, generator=g)
+
+        def mm():
+            torch.mm(a, b)
+            torch.cuda.synchronize(dev)
+
+        flops = _best_rate(mm, 2 * n**3, seconds)
+        x = torch.rand(2**28, device=dev, generator=g)  # 1 GiB, never zeros
+        y = torch.empty_like(x)
+
+        def cp():
+            y.copy_(x)
+            torch.cuda.synchronize(dev)
+
+        bw = _best_rate(cp, 2 * x.nbytes, seconds)
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = tf32
+    return {"device": torch.cuda.get_device_name(dev), "flops_per_s": flops, "bytes_per_s": bw,
+            "torch": torch.__version__, "cuda": torch.version.cuda,
+            "note": "fastest synchronised call of each over ~1 s: flops: float32 8192^3 matmul, TF32 off; bytes: "
+                    "1 GiB device-to-device copy, read + write"}
+
+
+def gpu_floors(counts: dict, rates: dict) -> list[dict]:
+    """Forward and step floors (ms) of the counted workloads on the measured GPU rates."""
+    rows = []
+    for w in counts["workloads"]:
+        fwd = floors(w, rates)["floor_ms"]
+        steps = {k: fwd + floors(b, rates)["floor_ms"] for k, b in (w.get("backward") or {}).items()}
+        rows.append({"points": w["points"], "views": w["views"], "image_size": w["image_size"], "forward_floor_ms": fwd,
+                     "step_floor_ms": steps})
+    return rows
 
 
 def _step_counts(pts, nrm, cams, sigma, s: RenderSettings) -> dict:
@@ -166,7 +212,23 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[8000, 20000, 100000])
     ap.add_argument("--out", default="docs/perf_counts.json")
+    ap.add_argument("--gpu-rates", metavar="OUT", default=None,
+                    help="instead: measure this machine's GPU rates and write them, with the floors of the "
+                         "workloads counted in --counts on those rates, to OUT (JSON)")
+    ap.add_argument("--counts", default="docs/perf_counts.json", help="with --gpu-rates: the counted work")
     args = ap.parse_args(argv)
+    if args.gpu_rates:
+        from dss.io_utils import atomic_write_json
+
+        if not torch.cuda.is_available():
+            raise SystemExit("--gpu-rates needs a CUDA GPU")
+        counts = json.loads(open(args.counts).read())
+        rates = measure_gpu_rates()
+        res = {"command": "python -m experiments.perf_counts " + " ".join(argv if argv is not None else sys.argv[1:]),
+               "rates": rates, "counts": args.counts, "floors": gpu_floors(counts, rates)}
+        atomic_write_json(args.gpu_rates, res)
+        print(json.dumps(res, indent=2))
+        return 0
     rates = measure_rates()
     rows = []
     for n in args.sizes:

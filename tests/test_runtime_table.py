@@ -220,6 +220,23 @@ def test_measured_rates_are_peaks_of_repeated_calls():
     assert r["bytes_per_s"] == max(r["copy_bytes_per_s_1thread"], r["copy_bytes_per_s_all_threads"]) > 1e8
 
 
+def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
+    """perf_counts.gpu_floors on the published H100 rates gives the runtime table's H100 floors
+    (the same counted work, one formula); --gpu-rates refuses to run without a GPU."""
+    from experiments import perf_counts
+
+    counts = json.loads(Path("docs/perf_counts.json").read_text())
+    rows = perf_counts.gpu_floors(counts, rt.H100_PUBLISHED)
+    for w, r in zip(counts["workloads"], rows):
+        assert r["points"] == w["points"]
+        assert r["forward_floor_ms"] == pytest.approx(rt._published_h100_ms(w))
+        for k, b in w["backward"].items():
+            assert r["step_floor_ms"][k] == pytest.approx(rt._published_h100_ms(w) + rt._published_h100_ms(b))
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit, match="needs a CUDA GPU"):
+            perf_counts.main(["--gpu-rates", "unused.json"])
+
+
 def test_ab_denoise_alternates_versions_and_reads_the_jobs_wall_time(monkeypatch, tmp_path):
     """experiments.ab_denoise without running jobs: the overrides after -- reach both versions,
     base and working tree alternate, and the medians and ratio come from the jobs' own lines."""
