@@ -313,7 +313,7 @@ class _KernelProject(torch.autograd.Function):
     dL/dnormals from dL/dpacked (sigma and cameras fixed; render() uses the torch version when
     they require grad). One pass over (view, point) each way instead of ~60 torch operators on
     (V, N) tensors and their autograd graph (20K points, 12 views, 2 threads: 30 -> ~8 ms per step;
-    on a GPU, ~200 kernel launches fewer per step). Both kernels compile dss/csrc/splat_project.h.
+    on a GPU, ~200 kernel launches fewer per step). Both kernels compile dss/csrc/splat_math.h.
     """
 
     @staticmethod

@@ -51,12 +51,10 @@ def summarize(lines: list[str], base_label: str, source: str) -> dict:
 
 
 def main(argv=None) -> list[dict]:
+    from experiments.bench_gpu import _cameras, _cloud, add_scene_args, bench_render_step
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--points", type=int, nargs="+", default=[20_000, 100_000])
-    ap.add_argument("--views", type=int, default=12)
-    ap.add_argument("--image-size", type=int, default=256)
-    ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--repeats", type=int, default=20)
+    add_scene_args(ap, repeats=20)
     ap.add_argument("--label", default="work", help="name of this tree in the output")
     ap.add_argument("--summarize", default=None, help="read the JSON lines of earlier runs from this file instead")
     ap.add_argument("--base-label", default=None, help="with --summarize: the label of the base tree")
@@ -64,19 +62,17 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--out", default=None, help="with --summarize: write the summary JSON here (atomically)")
     args = ap.parse_args(argv)
     if args.summarize:
-        from dss.io_utils import atomic_write_json
+        from experiments.bench_common import write_result
 
         res = summarize(Path(args.summarize).read_text().splitlines(), args.base_label, args.summarize)
         res["note"] = args.note
         res["command"] = "python -m experiments.ab_gpu " + shlex.join(argv if argv is not None else sys.argv[1:])
-        if args.out:
-            atomic_write_json(args.out, res)
+        write_result(res, args.out)
         print(json.dumps(res, indent=2))
         return res["results"]
     import dss
     from dss.render import RenderSettings
     from dss.splats import auto_sigma
-    from experiments.bench_gpu import _cameras, _cloud, bench_render_step
 
     if not torch.cuda.is_available():
         raise SystemExit(f"no CUDA device: this benchmark needs a GPU (dss from {dss.__file__})")

@@ -237,13 +237,18 @@ def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, w
     }
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_scene_args(ap: argparse.ArgumentParser, repeats: int):
+    """The sizes, views, image size and timing repeats of the GPU benchmarks (this and ab_gpu)."""
     ap.add_argument("--points", type=int, nargs="+", default=[20_000, 100_000])
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--image-size", type=int, default=256)
     ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--repeats", type=int, default=repeats)
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_args(ap, repeats=10)
     ap.add_argument("--out", default=None, help="also write the JSON here (atomically)")
     ap.add_argument("--profile", action="store_true", help="also profile 3 render steps per size (torch.profiler)")
     args = ap.parse_args(argv)

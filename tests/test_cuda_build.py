@@ -371,7 +371,7 @@ def project_args(seed: int, n: int = 700, views: int = 3, behind: int = 40):
 @pytest.mark.parametrize("culling", [True, False])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_emulated_projection_equals_cpu_kernel(seed, culling, emulated, cpu_kernel):
-    """Forward and backward of the projection (splat_project.h on both sides): bit for bit."""
+    """Forward and backward of the projection (splat_math.h on both sides): bit for bit."""
     args = project_args(seed)
     a = cpu_kernel.project_splats_forward(*args, 2.0, culling, 0.01, 0.3)
     b = emulated.project_splats_forward(*args, 2.0, culling, 0.01, 0.3)
@@ -710,7 +710,7 @@ def test_gpu_matches_cpu_on_a_denoising_sized_scene(cuda_kernel, cpu_kernel):
 @pytest.mark.gpu
 @pytest.mark.parametrize("culling", [True, False])
 def test_gpu_projection_and_sun_shading_equal_cpu_kernel(culling, cuda_kernel, cpu_kernel):
-    """splat_project.h and the sun shader on the GPU (--fmad=false, IEEE division and sqrt): bit for bit."""
+    """splat_math.h and the sun shader on the GPU (--fmad=false, IEEE division and sqrt): bit for bit."""
     from dss.shading import SunLights
 
     args = project_args(1, n=5000, views=12)

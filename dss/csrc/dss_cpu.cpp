@@ -22,7 +22,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "splat_project.h"
+#include "splat_math.h"
 // x86-64 builds compile AVX2 versions of the hot loops (function target attributes, so the rest of
 // the file stays baseline x86-64) and take them at run time when the CPU has AVX2.
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -76,13 +76,7 @@ inline Box splat_box(const float* s, int H, int W) {
   return b;
 }
 
-inline float quad(const float* s, float dx, float dy) {
-  // (a*dx)*dx + (b2*dx)*dy + (c*dy)*dy, left to right, as torch evaluates it.
-  float t1 = s[2] * dx * dx;
-  float t2 = s[3] * dx * dy;
-  float t3 = s[4] * dy * dy;
-  return (t1 + t2) + t3;
-}
+inline float quad(const float* s, float dx, float dy) { return dss_splat::quad(s[2], s[3], s[4], dx, dy); }
 
 // Depth of point k's tangent plane at the pixel centre (px, py), the depth its splat would have
 // there (the backward pass's occlusion test, cases (a)/(b)). For a plane 1/z is affine in screen
@@ -1259,25 +1253,8 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
           const int64_t k = pi[e];
           const float* s = P + (v * N + k) * kFields;
           if (!(s[9] > 0.f)) continue;
-          const float* wk = A + (v * N + k) * C;
-          double* a = acc.data() + k * S;
-          const float rf = pr[e];
-          double drho = 0;
-          for (int64_t c = 0; c < C; ++c) {
-            drho += (double)gp[c] * (wk[c] - ip[c]) * rden;
-            a[6 + c] += (double)gp[c] * rf * rden;
-          }
           const float dx = ((float)j + 0.5f) - s[0], dy = py - s[1];
-          const float q = quad(s, dx, dy);
-          // exp(-q/2) as the forward computed it (float32): d rho / d norm of rho = norm exp(-q/2)
-          const double ex = std::exp(-0.5f * q);
-          a[5] += drho * ex;
-          const double dq = -0.5 * drho * (double)s[5] * ex;
-          a[2] += dq * dx * dx;
-          a[3] += dq * dx * dy;
-          a[4] += dq * dy * dy;
-          a[0] += -dq * (2.0 * s[2] * dx + s[3] * dy);
-          a[1] += -dq * (s[3] * dx + 2.0 * s[4] * dy);
+          dss_splat::blend_entry_grad(s, A + (v * N + k) * C, gp, ip, C, pr[e], rden, dx, dy, acc.data() + k * S);
         }
       }
     }
@@ -1294,7 +1271,7 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
 }
 
 // ---------------------------------------------------------------------------------------------
-// The projection of one splat, forward and backward: splat_project.h (shared with the CUDA kernel).
+// The projection of one splat, forward and backward: splat_math.h (shared with the CUDA kernel).
 using dss_splat::project_backward_one;
 using dss_splat::project_forward_one;
 

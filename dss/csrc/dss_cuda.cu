@@ -17,7 +17,7 @@
 // Blend backward (the smooth terms of Eqs. gradN, gradP): one thread per (view, splat) gathers the
 // cache entries that hold it over its box, in the CPU kernel's pixel order (no atomics).
 // Projection (dss/splats.py project_splats) forward, one thread per (view, point), and backward,
-// one thread per point summing its views in view order: splat_project.h, the CPU kernel's code.
+// one thread per point summing its views in view order: splat_math.h, the CPU kernel's code.
 // Backward: one thread per (view, pixel) builds the pixel records of dss_cpu.cpp
 // visibility_backward (the loss gradient's projections g . w of the cached attributes, so an
 // evaluation is channel-free); then one thread per (view, point) evaluates the window around the
@@ -27,7 +27,7 @@
 //
 // Only the CUDA runtime is needed here; the torch glue is dss_cuda_bind.cpp.
 #include "dss_cuda.h"
-#include "splat_project.h"
+#include "splat_math.h"
 
 #include <cuda_runtime.h>
 
@@ -75,13 +75,7 @@ __device__ __forceinline__ Box splat_box(const float* __restrict__ s, int H, int
   return b;
 }
 
-// (a*dx)*dx + (b2*dx)*dy + (c*dy)*dy, left to right, as dss_cpu.cpp quad().
-__device__ __forceinline__ float quad(float a, float b2, float c, float dx, float dy) {
-  const float t1 = a * dx * dx;
-  const float t2 = b2 * dx * dy;
-  const float t3 = c * dy * dy;
-  return (t1 + t2) + t3;
-}
+using dss_splat::quad;  // the CPU kernel's quadratic form (splat_math.h)
 
 // The tangent-plane depth clamp's slope (the rule at kMaxSlope in dss_cpu.cpp).
 constexpr float kMaxSlope = 3.f;
@@ -538,33 +532,15 @@ __global__ void blend_backward_kernel(const float* __restrict__ P, const float* 
         const float* pr = Rh + g * K;
         if (pi[0] < 0) continue;
         const float lim = pd[0] + merge;
-        int nvis = 0, mine = -1;
+        int mine = -1;
         float den = 0.f;
         for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
           den += pr[e];
           if (pi[e] == k) mine = e;
-          ++nvis;
         }
         if (mine < 0 || !(den > 0.f)) continue;
-        const float* gp = GR + g * C;
-        const float* ip = IMG + g * C;
-        const double rden = 1.0 / (double)den;
-        const float rf = pr[mine];
-        double drho = 0;
-        for (int c = 0; c < C; ++c) {
-          drho += (double)gp[c] * (wk[c] - ip[c]) * rden;
-          a[6 + c] += (double)gp[c] * rf * rden;
-        }
         const float dx = ((float)j + 0.5f) - s[0], dy = py - s[1];
-        const float q = quad(s[2], s[3], s[4], dx, dy);
-        const double ex = expf(-0.5f * q);  // d rho / d norm, as the forward computed it (float32)
-        a[5] += drho * ex;
-        const double dq = -0.5 * drho * (double)s[5] * ex;
-        a[2] += dq * dx * dx;
-        a[3] += dq * dx * dy;
-        a[4] += dq * dy * dy;
-        a[0] += -dq * (2.0 * s[2] * dx + s[3] * dy);
-        a[1] += -dq * (s[3] * dx + 2.0 * s[4] * dy);
+        dss_splat::blend_entry_grad(s, wk, GR + g * C, IMG + g * C, C, pr[mine], 1.0 / (double)den, dx, dy, a);
       }
     }
   }

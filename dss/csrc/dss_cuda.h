@@ -21,7 +21,7 @@ constexpr int kTile = 16;     // screen tiles are kTile x kTile pixels, one CUDA
 constexpr int kMaxK = 8;
 constexpr int kMaxC = 16;
 
-// EWA splat projection (dss/splats.py project_splats; splat_project.h, the CPU kernel's code):
+// EWA splat projection (dss/splats.py project_splats; splat_math.h, the CPU kernel's code):
 // packed (V, N, 10) from points, normals (N, 3), R (V, 3, 3), t (V, 3), focal (V), principal
 // (V, 2), sigma (N).
 cudaError_t launch_project_forward(const float* points, const float* normals, const float* R, const float* t,

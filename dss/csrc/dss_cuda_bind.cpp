@@ -101,16 +101,21 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   return {idx, depth, rho, images, mask};
 }
 
-// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward): dL/dpacked (V,N,10)
-// (fields 0-5, the rest zero) and dL/dattrs (V,N,C) from dL/dimages and the forward's cache.
-std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
-                                          torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
-                                          torch::Tensor grad, double merge_d) {
+namespace {
+
+// The inputs of the backward kernels that read the forward's cache, checked (the CPU kernel's
+// rules) and on the splats' device, float32 / int32, contiguous; with their sizes.
+struct CacheInputs {
+  torch::Tensor packed, attrs, idx, depth, rho, images, grad;
+  int64_t V, N, H, W, K, C;
+};
+
+CacheInputs cache_inputs(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
+                         torch::Tensor rho, torch::Tensor images, torch::Tensor grad) {
   TORCH_CHECK(packed.dim() == 3 && packed.size(2) == dss_cuda::kFields, "packed splats must be (V,N,10)");
   TORCH_CHECK(!kOnGpu || packed.is_cuda(), "dss_cuda: packed splats must be a CUDA tensor");
   TORCH_CHECK(packed.size(1) < INT_MAX, "too many points for int32 indices");
   TORCH_CHECK(idx.dim() == 4 && idx.scalar_type() == torch::kInt32, "idx must be (V,H,W,K) int32");
-  DSS_DEVICE_GUARD(packed);
   const auto dev = packed.device();
   packed = packed.to(torch::kFloat32).contiguous();
   const int64_t V = packed.size(0), N = packed.size(1), H = idx.size(1), W = idx.size(2), K = idx.size(3);
@@ -119,21 +124,34 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
   TORCH_CHECK(attrs.dim() == 3 && attrs.size(0) == V && attrs.size(1) == N, "attrs must be (V,N,C)");
   const int64_t C = attrs.size(2);
   TORCH_CHECK(C >= 1 && C <= dss_cuda::kMaxC, "1 to ", dss_cuda::kMaxC, " channels, got ", C);
-  attrs = prep(attrs, dev, torch::kFloat32, "attrs");
-  idx = prep(idx, dev, torch::kInt32, "idx");
-  depth = prep(depth, dev, torch::kFloat32, "depth");
-  rho = prep(rho, dev, torch::kFloat32, "rho");
-  images = prep(images, dev, torch::kFloat32, "images");
-  grad = prep(grad, dev, torch::kFloat32, "grad");
-  TORCH_CHECK(depth.sizes() == idx.sizes() && rho.sizes() == idx.sizes(), "depth and rho must be shaped like idx");
-  TORCH_CHECK(images.numel() == V * H * W * C && grad.numel() == V * H * W * C, "images and grad must be (V,H,W,C)");
-  auto gpk = torch::empty({V, N, dss_cuda::kFields}, packed.options());
-  auto gat = torch::empty({V, N, C}, packed.options());
-  check_launch(dss_cuda::launch_blend_backward(packed.data_ptr<float>(), attrs.data_ptr<float>(),
-                                               idx.data_ptr<int32_t>(), depth.data_ptr<float>(),
-                                               rho.data_ptr<float>(), images.data_ptr<float>(),
-                                               grad.data_ptr<float>(), V, N, (int)H, (int)W, (int)K, (int)C,
-                                               (float)merge_d, gpk.data_ptr<float>(), gat.data_ptr<float>(),
+  CacheInputs in{packed, prep(attrs, dev, torch::kFloat32, "attrs"), prep(idx, dev, torch::kInt32, "idx"),
+                 prep(depth, dev, torch::kFloat32, "depth"), prep(rho, dev, torch::kFloat32, "rho"),
+                 prep(images, dev, torch::kFloat32, "images"), prep(grad, dev, torch::kFloat32, "grad"),
+                 V, N, H, W, K, C};
+  TORCH_CHECK(in.depth.sizes() == in.idx.sizes() && in.rho.sizes() == in.idx.sizes(),
+              "depth and rho must be shaped like idx");
+  TORCH_CHECK(in.images.numel() == V * H * W * C && in.grad.numel() == V * H * W * C,
+              "images and grad must be (V,H,W,C)");
+  return in;
+}
+
+}  // namespace
+
+// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward): dL/dpacked (V,N,10)
+// (fields 0-5, the rest zero) and dL/dattrs (V,N,C) from dL/dimages and the forward's cache.
+std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
+                                          torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
+                                          torch::Tensor grad, double merge_d) {
+  DSS_DEVICE_GUARD(packed);
+  const CacheInputs in = cache_inputs(packed, attrs, idx, depth, rho, images, grad);
+  const int64_t V = in.V, N = in.N, C = in.C;
+  auto gpk = torch::empty({V, N, dss_cuda::kFields}, in.packed.options());
+  auto gat = torch::empty({V, N, C}, in.packed.options());
+  check_launch(dss_cuda::launch_blend_backward(in.packed.data_ptr<float>(), in.attrs.data_ptr<float>(),
+                                               in.idx.data_ptr<int32_t>(), in.depth.data_ptr<float>(),
+                                               in.rho.data_ptr<float>(), in.images.data_ptr<float>(),
+                                               in.grad.data_ptr<float>(), V, N, (int)in.H, (int)in.W, (int)in.K,
+                                               (int)C, (float)merge_d, gpk.data_ptr<float>(), gat.data_ptr<float>(),
                                                current_stream()),
                "blend_backward");
   return {gpk, gat};
@@ -146,36 +164,19 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
                                   torch::Tensor focal, torch::Tensor principal, torch::Tensor background,
                                   torch::Tensor planes, int64_t window, int64_t stride, double cutoff_d, double merge_d, double eps_d,
                                   int64_t mode) {
-  TORCH_CHECK(packed.dim() == 3 && packed.size(2) == dss_cuda::kFields, "packed splats must be (V,N,10)");
-  TORCH_CHECK(!kOnGpu || packed.is_cuda(), "dss_cuda: packed splats must be a CUDA tensor");
-  TORCH_CHECK(packed.size(1) < INT_MAX, "too many points for int32 indices");
-  TORCH_CHECK(idx.dim() == 4 && idx.scalar_type() == torch::kInt32, "idx must be (V,H,W,K) int32");
   TORCH_CHECK(stride >= 1, "window stride must be >= 1");
   TORCH_CHECK(window >= 0 && window < (1 << 20), "window must be in [0, 2^20)");
   TORCH_CHECK(mode == 0 || mode == 1, "mode must be 0 (dss) or 1 (rbf)");
   DSS_DEVICE_GUARD(packed);
-  const auto dev = packed.device();
-  packed = packed.to(torch::kFloat32).contiguous();
-  const int64_t V = packed.size(0), N = packed.size(1), H = idx.size(1), W = idx.size(2), K = idx.size(3);
-  TORCH_CHECK(idx.size(0) == V, "idx must have V = ", V, " views");
-  TORCH_CHECK(K >= 1 && K <= dss_cuda::kMaxK, "K must be in [1, ", dss_cuda::kMaxK, "]");
-  TORCH_CHECK(attrs.dim() == 3 && attrs.size(0) == V && attrs.size(1) == N, "attrs must be (V,N,C)");
-  const int64_t C = attrs.size(2);
-  TORCH_CHECK(C >= 1 && C <= dss_cuda::kMaxC, "1 to ", dss_cuda::kMaxC, " channels, got ", C);
-  attrs = prep(attrs, dev, torch::kFloat32, "attrs");
-  idx = prep(idx, dev, torch::kInt32, "idx");
-  depth = prep(depth, dev, torch::kFloat32, "depth");
-  rho = prep(rho, dev, torch::kFloat32, "rho");
-  images = prep(images, dev, torch::kFloat32, "images");
-  grad = prep(grad, dev, torch::kFloat32, "grad");
+  const CacheInputs in = cache_inputs(packed, attrs, idx, depth, rho, images, grad);
+  const int64_t V = in.V, N = in.N, H = in.H, W = in.W, K = in.K, C = in.C;
+  const auto dev = in.packed.device();
   R = prep(R, dev, torch::kFloat32, "R");
   focal = prep(focal, dev, torch::kFloat32, "focal");
   principal = prep(principal, dev, torch::kFloat32, "principal");
   background = prep(background, dev, torch::kFloat32, "background");
   planes = prep(planes, dev, torch::kFloat32, "planes");
   TORCH_CHECK(planes.numel() == V * N * 3, "planes must be (V,N,3)");
-  TORCH_CHECK(depth.sizes() == idx.sizes() && rho.sizes() == idx.sizes(), "depth and rho must be shaped like idx");
-  TORCH_CHECK(images.numel() == V * H * W * C && grad.numel() == V * H * W * C, "images and grad must be (V,H,W,C)");
   TORCH_CHECK(R.numel() == V * 9 && focal.numel() == V && principal.numel() == V * 2,
               "camera tensors must have V views");
   TORCH_CHECK(background.numel() == C, "background must have C entries");
@@ -186,14 +187,15 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
                               torch::TensorOptions().dtype(torch::kFloat32).device(dev));
   auto out = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32).device(dev));
   check_launch(dss_cuda::launch_visibility(
-                   packed.data_ptr<float>(), attrs.data_ptr<float>(), idx.data_ptr<int32_t>(),
-                   depth.data_ptr<float>(), rho.data_ptr<float>(), images.data_ptr<float>(), grad.data_ptr<float>(),
+                   in.packed.data_ptr<float>(), in.attrs.data_ptr<float>(), in.idx.data_ptr<int32_t>(),
+                   in.depth.data_ptr<float>(), in.rho.data_ptr<float>(), in.images.data_ptr<float>(),
+                   in.grad.data_ptr<float>(),
                    R.data_ptr<float>(), focal.data_ptr<float>(), principal.data_ptr<float>(),
                    background.data_ptr<float>(), planes.data_ptr<float>(), V, N, (int)H, (int)W, (int)K, (int)C, (int)window, (int)stride,
                    (float)cutoff_d, (float)merge_d, (float)eps_d, (int)mode, records.data_ptr<float>(),
                    partial.data_ptr<double>(), stream),
                "visibility");
-  check_launch(dss_cuda::launch_reduce_views(packed.data_ptr<float>(), partial.data_ptr<double>(), V, N,
+  check_launch(dss_cuda::launch_reduce_views(in.packed.data_ptr<float>(), partial.data_ptr<double>(), V, N,
                                              out.data_ptr<float>(), stream),
                "reduce_views");
   return out;

@@ -1,13 +1,16 @@
-// EWA splat projection of one (view, point): the formulas of dss/splats.py project_splats, shared
-// by the CPU kernel (dss_cpu.cpp, vectorised loops over points) and the CUDA kernel (dss_cuda.cu,
-// a thread per point). float32 in the torch expressions' order; both are built without
-// contraction (g++ -ffp-contract=off, nvcc --fmad=false) and with IEEE division and square root,
-// so the CPU and the GPU give the same bits.
+// Per-splat formulas shared by the CPU kernel (dss_cpu.cpp, vectorised loops over points) and the
+// CUDA kernel (dss_cuda.cu, a thread per point or splat): the EWA projection of one (view, point)
+// (dss/splats.py project_splats) forward and backward, the splat's quadratic form, and one cache
+// entry's share of the blend backward (Eq. sumI's smooth terms). float32 in the torch expressions'
+// order; both are built without contraction (g++ -ffp-contract=off, nvcc --fmad=false) and with
+// IEEE division and square root, so the CPU and the GPU give the same bits (expf aside: CUDA's is
+// within 2 ulp of the host's).
 //
 // Packed fields (dss/splats.py): u v conic_a conic_b2 conic_c norm depth rx ry valid.
 #pragma once
 
 #include <cmath>
+#include <cstdint>
 
 #if defined(__CUDACC__) || defined(DSS_EMU_KERNELS)
 #define DSS_SPLAT_FN __host__ __device__ __forceinline__
@@ -16,6 +19,37 @@
 #endif
 
 namespace dss_splat {
+
+// q = (a dx) dx + (b2 dx) dy + (c dy) dy, left to right, as torch evaluates it.
+DSS_SPLAT_FN float quad(float a, float b2, float c, float dx, float dy) {
+  const float t1 = a * dx * dx;
+  const float t2 = b2 * dx * dy;
+  const float t3 = c * dy * dy;
+  return (t1 + t2) + t3;
+}
+
+// One visible cache entry's share of the blend backward (I = sum_f rho_f w_f / sum_f rho_f):
+// s, the entry's packed splat; wk (C), its attributes; gp, ip (C), the pixel's dL/dI and image;
+// rf, its rho; rden = 1 / sum_f rho_f; (dx, dy) = pixel centre - (u, v). Adds dL/d(u, v, a, b2,
+// c, norm) to acc[0..5] and dL/dw_k to acc[6..6+C), in double.
+DSS_SPLAT_FN void blend_entry_grad(const float* s, const float* wk, const float* gp, const float* ip, int64_t C,
+                                   float rf, double rden, float dx, float dy, double* acc) {
+  double drho = 0;
+  for (int64_t c = 0; c < C; ++c) {
+    drho += (double)gp[c] * (wk[c] - ip[c]) * rden;
+    acc[6 + c] += (double)gp[c] * rf * rden;
+  }
+  const float q = quad(s[2], s[3], s[4], dx, dy);
+  // exp(-q/2) as the forward computed it (float32): d rho / d norm of rho = norm exp(-q/2)
+  const double ex = expf(-0.5f * q);
+  acc[5] += drho * ex;
+  const double dq = -0.5 * drho * (double)s[5] * ex;
+  acc[2] += dq * dx * dx;
+  acc[3] += dq * dx * dy;
+  acc[4] += dq * dy * dy;
+  acc[0] += -dq * (2.0 * s[2] * dx + s[3] * dy);
+  acc[1] += -dq * (s[3] * dx + 2.0 * s[4] * dy);
+}
 
 struct SplatGeometry {
   float X, Y, Z, Zs, nc[3], inv, nh[3], m1[3], m2[3], m1n, m2n, A11, A12, A22, w, detJ, s2, S11, S12, S22, detS;
