@@ -348,14 +348,17 @@ def test_emulated_visibility_equals_cpu_kernel(name, mode, scenes, emulated, cpu
     s = scenes[name]
     cache = cpu_kernel.rasterize_forward(*forward_args(s))
     grad = random_grad(cache[3], 7)
-    for window, stride in ((4, 1), (6, 3)):
+    # windows of 9 columns (one run of 8 + 1), 13 (+ 5) with stride 3, 17 (two runs + 1), 5 (no run)
+    for window, stride in ((4, 1), (6, 3), (8, 1), (2, 1)):
         ga = cpu_kernel.visibility_backward(*backward_args(s, cache, grad, mode, window, stride))
         gb = emulated.visibility_backward(*backward_args(s, cache, grad, mode, window, stride))
         assert ga.abs().sum() > 0
         # Both build the same pixel records and evaluate them with the same float32 expressions
         # in the same order (emulation compiles with -ffp-contract=off, as the CPU kernel), and
-        # both add in the same order: bit for bit. (The CPU kernel's AVX2 path gives the scalar
-        # path's bits, tests/test_render_backward.py.)
+        # both add them into the same partial sums (splat_math.h vis_partial; the GPU walks the
+        # window partial by partial, the CPU's vector path keeps them in lanes) in the same
+        # order: bit for bit. (The CPU kernel's AVX2 path gives the scalar path's bits,
+        # tests/test_render_backward.py.)
         assert torch.equal(ga, gb), f"{(ga != gb).any(1).sum().item()} points differ, max {(ga - gb).abs().max().item()}"
 
 

@@ -454,7 +454,8 @@ def test_float64_inputs_render_and_differentiate_on_both_backends(cpp_backend):
 def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend):
     """The AVX2 evaluation of the dss rule (8 pixels of a window row per vector, every case
     computed in every lane) gives exactly the scalar evaluation's gradient: the same float32
-    operations per lane and the contributions added in the scalar walk's order. The parameters
+    operations per lane and the contributions added in the same partial sums in the same order
+    (dss/csrc/splat_math.h vis_partial: lane l of every run into partial l). The parameters
     cover the compiled (K, C) variants and the run-time one, windows whose rows are runs of 8
     plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1), and points near and
     beyond the image border (runs partly off the image use masked loads). Narrower windows take

@@ -760,19 +760,20 @@ inline void eval_scalar(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& 
 
 // The dss rule over a point's stride-1 window, 8 pixels of a window row per AVX2 vector: every
 // case is computed in every lane and the lane's own case selected by masks; the same float32
-// operations in the same order as eval_scalar per lane, and the lanes' contributions added to
-// acc in the scalar walk's order, so the result is bit for bit the scalar one
-// (tests/test_render_backward.py checks). A row's pixels beyond its runs of 8 (the 9th of a
-// 9-wide window) go through eval_scalar. Windows narrower than 8 pixels, sparse (stride > 1)
+// operations in the same order as eval_scalar per lane, and lane l's contributions added to
+// partial sum l (in double, two vectors of 4 per coordinate), the order that splat_math.h fixes
+// for every path, so the result is bit for bit the scalar one (tests/test_render_backward.py
+// checks). A row's pixels beyond its runs of 8 (the 9th of a 9-wide window) go through
+// eval_scalar into their own partials. Windows narrower than 8 pixels, sparse (stride > 1)
 // windows and the rbf rule take the scalar path.
 #ifdef DSS_HAVE_AVX2
 // One chunk's contributions, added per lane as acc += (x1, y1, 0); acc += (x2, y2, z): the two
-// (c) steps (z = 0) or the (a)/(b) step (x2 = y2 = 0). Adding +0 leaves a sum that started at
-// +0 unchanged, so this is the scalar walk's sum without a branch on the case. bits: the lanes
-// that contribute.
-struct alignas(32) VisChunkOut {
-  float x1[8], y1[8], x2[8], y2[8], z[8];
-  int bits;
+// (c) steps (z = 0) or the (a)/(b) step (x2 = y2 = 0); lanes that do not contribute hold +0.
+// Adding +0 leaves a sum that started at +0 unchanged, so this is the scalar path's sum without a
+// branch on the case or the lane. any: some lane contributes.
+struct VisChunkOut {
+  __m256 x1, y1, x2, y2, z;
+  bool any;
 };
 
 // Where a chunk's 8 pixels are: offsets p0 + l of a window row; masked: lanes outside oki (off
@@ -833,7 +834,7 @@ struct VisLanes {
   DSS_AVX2 void eval(const VisAddr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.f);
     const __m256i minus1 = _mm256_set1_epi32(-1);
-    out.bits = 0;
+    out.any = false;
     const __m256 m = _mm256_and_ps(_mm256_castsi256_ps(a.oki), _mm256_cmp_ps(ld(a, R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ));
     if (_mm256_movemask_ps(m) == 0) return;
     const __m256 d0 = ld(a, R->plane(Rec::kD0)), r1 = ld(a, R->plane(Rec::kDen)), r2 = ld(a, R->plane(Rec::kGn));
@@ -937,26 +938,46 @@ struct VisLanes {
       b[1] = _mm256_mul_ps(coef, my);
       b[2] = _mm256_mul_ps(coef, mz);
     }
-    _mm256_store_ps(out.x1, _mm256_blendv_ps(b[0], c[0][0], kvis));
-    _mm256_store_ps(out.y1, _mm256_blendv_ps(b[1], c[0][1], kvis));
-    _mm256_store_ps(out.x2, _mm256_and_ps(c[1][0], kvis));
-    _mm256_store_ps(out.y2, _mm256_and_ps(c[1][1], kvis));
-    _mm256_store_ps(out.z, _mm256_andnot_ps(kvis, b[2]));
-    out.bits = _mm256_movemask_ps(_mm256_or_ps(act_v, act_n));
+    // a section's inactive lanes may hold anything (it ran for the others): keep the active ones
+    const __m256 act_any = _mm256_or_ps(act_v, act_n);
+    out.x1 = _mm256_and_ps(act_any, _mm256_blendv_ps(b[0], c[0][0], kvis));
+    out.y1 = _mm256_and_ps(act_any, _mm256_blendv_ps(b[1], c[0][1], kvis));
+    out.x2 = _mm256_and_ps(act_v, c[1][0]);
+    out.y2 = _mm256_and_ps(act_v, c[1][1]);
+    out.z = _mm256_and_ps(act_n, b[2]);
+    out.any = _mm256_movemask_ps(act_any) != 0;
   }
 };
+
+#endif
+
+// Adds the window's partial sums to acc in partial order (dss_splat::vis_partial).
+inline void add_partials(const double (*part)[3], int nq, double acc[3]) {
+  for (int q = 0; q < nq; ++q)
+    for (int a = 0; a < 3; ++a) acc[a] += part[q][a];
+}
+
+#ifdef DSS_HAVE_AVX2
+// A lane's float contributions added to its double partial (lanes 0-3 in lo, 4-7 in hi).
+DSS_AVX2 inline void add_lanes(__m256d& lo, __m256d& hi, __m256 x) {
+  lo = _mm256_add_pd(lo, _mm256_cvtps_pd(_mm256_castps256_ps128(x)));
+  hi = _mm256_add_pd(hi, _mm256_cvtps_pd(_mm256_extractf128_ps(x, 1)));
+}
 
 template <int64_t KC, int64_t CC>
 DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
                               int64_t H, int64_t W, int64_t window, int ic, int jc, double acc[3]) {
   VisLanes<KC, CC> L;
   L.init(rec, Krt, Crt, P, Q);
-  const int64_t n = 2 * window + 1, mw = n / 8 * 8;  // a row's first mw pixels in runs of 8
+  const int mw = dss_splat::vis_window_runs(window);  // a row's first mw pixels in runs of 8
+  const int nq = dss_splat::vis_partial_count(window);
   const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const __m256i minus1 = _mm256_set1_epi32(-1), vW = _mm256_set1_epi32((int)W);
   const __m256 half = _mm256_set1_ps(0.5f);
   VisChunkOut o;
-  double a0 = acc[0], a1 = acc[1], a2 = acc[2];  // in registers: acc would go through memory
+  // partials 0-7 in lanes (x, y, z; lanes 0-3 and 4-7), the rest (columns mw, mw + 1, ...) scalar
+  __m256d sx[2] = {_mm256_setzero_pd(), _mm256_setzero_pd()}, sy[2] = {sx[0], sx[0]}, sz[2] = {sx[0], sx[0]};
+  double part[dss_splat::kVisPartials][3] = {};
   for (int64_t i = ic - window; i <= ic + window; ++i) {
     if (i < 0 || i >= H) continue;
     const float py = (float)i + 0.5f;
@@ -968,25 +989,28 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
       a.p0 = i * W + j0;
       a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
       L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
-      for (int bits = o.bits; bits; bits &= bits - 1) {
-        const int l = __builtin_ctz(bits);
-        a0 += o.x1[l];
-        a1 += o.y1[l];
-        a0 += o.x2[l];
-        a1 += o.y2[l];
-        a2 += o.z[l];
+      if (o.any) {
+        add_lanes(sx[0], sx[1], o.x1);
+        add_lanes(sy[0], sy[1], o.y1);
+        add_lanes(sx[0], sx[1], o.x2);
+        add_lanes(sy[0], sy[1], o.y2);
+        add_lanes(sz[0], sz[1], o.z);
       }
     }
-    // the row's last n - mw pixels one at a time (a vector with one lane in use costs 3 scalar ones)
+    // the row's last 2 w + 1 - mw pixels one at a time (a vector with one lane in use costs 3 scalar ones)
     for (int64_t j = std::max<int64_t>(jc - window + mw, 0); j <= std::min<int64_t>(jc + window, W - 1); ++j) {
       const int64_t p = i * W + j;
       if (rec.nz(p) == 0.f) continue;
-      double t[3] = {a0, a1, a2};
-      eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, t);
-      a0 = t[0], a1 = t[1], a2 = t[2];
+      eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, part[8 + (j - (jc - window) - mw)]);
     }
   }
-  acc[0] = a0, acc[1] = a1, acc[2] = a2;
+  alignas(32) double lanes[3][8];
+  _mm256_store_pd(lanes[0], sx[0]), _mm256_store_pd(lanes[0] + 4, sx[1]);
+  _mm256_store_pd(lanes[1], sy[0]), _mm256_store_pd(lanes[1] + 4, sy[1]);
+  _mm256_store_pd(lanes[2], sz[0]), _mm256_store_pd(lanes[2] + 4, sz[1]);
+  for (int l = 0; l < 8; ++l)
+    for (int c = 0; c < 3; ++c) part[l][c] = lanes[c][l];
+  add_partials(part, nq, acc);
 }
 #endif
 
@@ -1145,17 +1169,23 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
             }
           }
 #endif
-          for (int64_t dy = -window; dy <= window && !done; dy += stride) {
-            const int64_t i = ic + dy;
-            if (i < 0 || i >= H) continue;
-            const float py = (float)i + 0.5f;
-            for (int64_t dx = -window; dx <= window; dx += stride) {
-              const int64_t j = jc + dx;
-              if (j < 0 || j >= W) continue;
-              const int64_t p = i * W + j;
-              if (R.nz(p) == 0.f) continue;
-              eval_scalar<KC, CC>(R, Krt, Crt, pt, Q, mode, p, (float)j + 0.5f, py, acc);
+          if (!done) {  // partial sums in the order of dss_splat::vis_partial, as the vector path
+            double part[dss_splat::kVisPartials][3] = {};
+            const int mw = dss_splat::vis_window_runs(window);
+            for (int64_t dy = -window; dy <= window; dy += stride) {
+              const int64_t i = ic + dy;
+              if (i < 0 || i >= H) continue;
+              const float py = (float)i + 0.5f;
+              for (int64_t dx = -window; dx <= window; dx += stride) {
+                const int64_t j = jc + dx;
+                if (j < 0 || j >= W) continue;
+                const int64_t p = i * W + j;
+                if (R.nz(p) == 0.f) continue;
+                eval_scalar<KC, CC>(R, Krt, Crt, pt, Q, mode, p, (float)j + 0.5f, py,
+                                    part[dss_splat::vis_partial(dx + window, mw)]);
+              }
             }
+            add_partials(part, dss_splat::vis_partial_count(window), acc);
           }
           double* gk = gsum.data() + k * 3;  // world gradient = R^T acc
           for (int a = 0; a < 3; ++a)

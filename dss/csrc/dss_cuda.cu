@@ -302,8 +302,122 @@ __global__ void vis_records_kernel(const float* __restrict__ A, const int32_t* _
   r[3] = gnum;
 }
 
-// Per (view, point): the window loop of dss_cpu.cpp visibility_backward over the pixel records
-// (vis_state and eval_scalar there), expression for expression.
+// One (point, pixel) evaluation of visibility_kernel: vis_state and eval_scalar of dss_cpu.cpp,
+// expression for expression; adds the contribution to t (double).
+__device__ __forceinline__ void vis_eval_pixel(const float* __restrict__ s, const float* __restrict__ wk,
+                                               const float* __restrict__ pl, const int32_t* __restrict__ I,
+                                               const float* __restrict__ REC, int64_t RS, int32_t k, int64_t p,
+                                               float px, float py, int K, int C, float f, float cx, float cy,
+                                               float inv_f, float u, float vv, float z, float nk, float z_f, float X,
+                                               float Y, float slope, float cutoff, float merge, float eps, int mode,
+                                               double t[3]) {
+  const float* r = REC + p * RS;
+  if (r[0] == 0.f) return;
+  const int32_t* pi = I + p * K;
+  const float* pd = r + 6 + C;
+  const float* pr = pd + K;
+  const float* pg = pr + K;
+  const float d0 = r[1];
+  int ek = -1;  // position of k in the cache
+  for (int e = 0; e < K && pi[e] >= 0; ++e)
+    if (pi[e] == k) {
+      ek = e;
+      break;
+    }
+  const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
+  float zp = 0.f, den, gn;
+  int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
+  if (k_visible) {
+    kase = 2;
+    if (ek > 0) {  // the front stays: the visible set loses k only
+      const float prk = pr[ek];
+      den = r[2] - prk;
+      gn = r[3] - prk * pg[ek];
+      if (!(den > 0.f)) den = 0.f;
+    } else {  // k was the front: the next entry is the new front, may reveal others
+      den = 0.f;
+      gn = 0.f;
+      if (K > 1 && pi[1] >= 0) {
+        const float lim = pd[1] + merge;
+        for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+          den += pr[e];
+          gn += pr[e] * pg[e];
+        }
+      }
+    }
+  } else {
+    // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
+    const float iz = pl[0] * px + pl[1] * py + pl[2];
+    zp = iz > 0.f ? 1.f / iz : z;
+    const float d2 = (px - u) * (px - u) + (py - vv) * (py - vv);
+    const float dz = zp - z;
+    if (dz * dz > slope * slope * d2) {
+      const float dmax = slope * sqrtf(d2);
+      const float lo = z - dmax, hi = z + dmax;
+      zp = (zp < lo) ? lo : zp;  // std::max(zp, lo)
+      zp = (hi < zp) ? hi : zp;  // std::min(zp, hi)
+    }
+    const bool empty = pi[0] < 0;
+    kase = (empty || zp <= d0 + merge) ? 0 : 1;
+    float gw = 0.f;
+    for (int ch = 0; ch < C; ++ch) gw += r[6 + ch] * wk[ch];
+    den = nk;
+    gn = nk * gw;
+    if (kase == 1 || zp >= d0) {  // merges with the current visible set
+      den += r[2];
+      gn += r[3];
+    } else if (!empty) {  // k becomes the front: entries beyond zp + T drop out
+      const float lim = zp + merge;
+      for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
+        den += pr[e];
+        gn += pr[e] * pg[e];
+      }
+    }
+  }
+  const float gd = (den > 0.f ? gn / den : r[5]) - r[4];
+  const float ddx = px - u, ddy = py - vv;
+  if (mode == 1) {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
+    const float q = quad(s[2], s[3], s[4], ddx, ddy);
+    const float h = expf(-0.5f * q);
+    const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
+    const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);
+    const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
+    const float c = sgn * gd;
+    t[0] += c * (f / z) * gu;
+    t[1] += c * (f / z) * gv;
+    t[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
+    return;
+  }
+  if (!(gd < 0.f)) return;  // Eq. filteredG
+  if (kase == 2) {  // (c): step out of the splat along the ray from its centre, both ways
+    const float sd = sqrtf(ddx * ddx + ddy * ddy);
+    if (sd < 1e-6f) return;
+    const float inv_sd = 1.f / sd;
+    const float ux = ddx * inv_sd, uy = ddy * inv_sd;
+    const float qu = quad(s[2], s[3], s[4], ux, uy);
+    const float rr = sqrtf(2.f * cutoff / ((qu < 1e-20f) ? 1e-20f : qu));  // std::max(qu, 1e-20f)
+    const float rs = rr - sd;
+    const float steps[2] = {-((rs < 0.f) ? 0.f : rs), rr + sd};  // -(std::max(rr - sd, 0.f))
+#pragma unroll
+    for (int m = 0; m < 2; ++m) {
+      const float mx = steps[m] * ux * z_f, my = steps[m] * uy * z_f;
+      const float coef = gd / (mx * mx + my * my + eps);
+      t[0] += coef * mx;
+      t[1] += coef * my;
+    }
+  } else {
+    const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
+    const float zt_f = zt * inv_f;
+    const float mx = (px - cx) * zt_f - X, my = (py - cy) * zt_f - Y, mz = zt - zp;
+    const float coef = gd / (mx * mx + my * my + mz * mz + eps);
+    t[0] += coef * mx;
+    t[1] += coef * my;
+    t[2] += coef * mz;
+  }
+}
+
+// Per (view, point): the window loop of dss_cpu.cpp visibility_backward over the pixel records,
+// its contributions added in the same partial sums (dss_splat::vis_partial) in the same order.
 __global__ void visibility_kernel(const float* __restrict__ P, const float* __restrict__ A,
                                   const int32_t* __restrict__ I, const float* __restrict__ REC,
                                   const float* __restrict__ Rm, const float* __restrict__ F,
@@ -332,120 +446,26 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
   const float* pl = PL + item * 3;
   const int ic = (int)floorf(vv), jc = (int)floorf(u);
   const int64_t HW = (int64_t)H * W;
+  // the window's partial sums in the order of dss_splat::vis_partial (the CPU kernel's): partial
+  // by partial, each over its columns in row-major order
+  const int mw = dss_splat::vis_window_runs(window), nq = dss_splat::vis_partial_count(window);
   double acc[3] = {0, 0, 0};
-  for (int64_t dy = -window; dy <= window; dy += stride) {
-    const int64_t i = ic + dy;
-    if (i < 0 || i >= H) continue;
-    const float py = (float)i + 0.5f;
-    for (int64_t dx = -window; dx <= window; dx += stride) {
-      const int64_t j = jc + dx;
-      if (j < 0 || j >= W) continue;
-      const int64_t p = v * HW + i * W + j;
-      const float* r = REC + p * RS;
-      if (r[0] == 0.f) continue;
-      const float px = (float)j + 0.5f;
-      const int32_t* pi = I + p * K;
-      const float* pd = r + 6 + C;
-      const float* pr = pd + K;
-      const float* pg = pr + K;
-      const float d0 = r[1];
-      int ek = -1;  // position of k in the cache
-      for (int e = 0; e < K && pi[e] >= 0; ++e)
-        if (pi[e] == k) {
-          ek = e;
-          break;
-        }
-      const bool k_visible = ek >= 0 && pd[ek] <= d0 + merge;
-      float zp = 0.f, den, gn;
-      int kase;  // 0: (a) invisible, nothing in front; 1: (b) occluded; 2: (c) visible
-      if (k_visible) {
-        kase = 2;
-        if (ek > 0) {  // the front stays: the visible set loses k only
-          const float prk = pr[ek];
-          den = r[2] - prk;
-          gn = r[3] - prk * pg[ek];
-          if (!(den > 0.f)) den = 0.f;
-        } else {  // k was the front: the next entry is the new front, may reveal others
-          den = 0.f;
-          gn = 0.f;
-          if (K > 1 && pi[1] >= 0) {
-            const float lim = pd[1] + merge;
-            for (int e = 1; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
-              den += pr[e];
-              gn += pr[e] * pg[e];
-            }
-          }
-        }
-      } else {
-        // k's tangent-plane depth at the pixel, clamped to kMaxSlope (square root only if it applies)
-        const float iz = pl[0] * px + pl[1] * py + pl[2];
-        zp = iz > 0.f ? 1.f / iz : z;
-        const float d2 = (px - u) * (px - u) + (py - vv) * (py - vv);
-        const float dz = zp - z;
-        if (dz * dz > slope * slope * d2) {
-          const float dmax = slope * sqrtf(d2);
-          const float lo = z - dmax, hi = z + dmax;
-          zp = (zp < lo) ? lo : zp;  // std::max(zp, lo)
-          zp = (hi < zp) ? hi : zp;  // std::min(zp, hi)
-        }
-        const bool empty = pi[0] < 0;
-        kase = (empty || zp <= d0 + merge) ? 0 : 1;
-        float gw = 0.f;
-        for (int ch = 0; ch < C; ++ch) gw += r[6 + ch] * wk[ch];
-        den = nk;
-        gn = nk * gw;
-        if (kase == 1 || zp >= d0) {  // merges with the current visible set
-          den += r[2];
-          gn += r[3];
-        } else if (!empty) {  // k becomes the front: entries beyond zp + T drop out
-          const float lim = zp + merge;
-          for (int e = 0; e < K && pi[e] >= 0 && pd[e] <= lim; ++e) {
-            den += pr[e];
-            gn += pr[e] * pg[e];
-          }
-        }
-      }
-      const float gd = (den > 0.f ? gn / den : r[5]) - r[4];
-      const float ddx = px - u, ddy = py - vv;
-      if (mode == 1) {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
-        const float q = quad(s[2], s[3], s[4], ddx, ddy);
-        const float h = expf(-0.5f * q);
-        const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
-        const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);
-        const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
-        const float c = sgn * gd;
-        acc[0] += c * (f / z) * gu;
-        acc[1] += c * (f / z) * gv;
-        acc[2] += c * (-f * X / (z * z) * gu - f * Y / (z * z) * gv);
-        continue;
-      }
-      if (!(gd < 0.f)) continue;  // Eq. filteredG
-      if (kase == 2) {            // (c): step out of the splat along the ray from its centre, both ways
-        const float sd = sqrtf(ddx * ddx + ddy * ddy);
-        if (sd < 1e-6f) continue;
-        const float inv_sd = 1.f / sd;
-        const float ux = ddx * inv_sd, uy = ddy * inv_sd;
-        const float qu = quad(s[2], s[3], s[4], ux, uy);
-        const float rr = sqrtf(2.f * cutoff / ((qu < 1e-20f) ? 1e-20f : qu));  // std::max(qu, 1e-20f)
-        const float rs = rr - sd;
-        const float steps[2] = {-((rs < 0.f) ? 0.f : rs), rr + sd};  // -(std::max(rr - sd, 0.f))
-#pragma unroll
-        for (int m = 0; m < 2; ++m) {
-          const float mx = steps[m] * ux * z_f, my = steps[m] * uy * z_f;
-          const float coef = gd / (mx * mx + my * my + eps);
-          acc[0] += coef * mx;
-          acc[1] += coef * my;
-        }
-      } else {
-        const float zt = kase == 1 ? d0 : zp;  // (b): forward to the front surface
-        const float zt_f = zt * inv_f;
-        const float mx = (px - cx) * zt_f - X, my = (py - cy) * zt_f - Y, mz = zt - zp;
-        const float coef = gd / (mx * mx + my * my + mz * mz + eps);
-        acc[0] += coef * mx;
-        acc[1] += coef * my;
-        acc[2] += coef * mz;
+  for (int q = 0; q < nq; ++q) {
+    const int c0 = q < 8 ? q : mw + q - 8, c1 = q < 8 ? mw : c0 + 1, cstep = q < 8 ? 8 : 1;
+    double t[3] = {0, 0, 0};
+    for (int64_t dy = -window; dy <= window; dy += stride) {
+      const int64_t i = ic + dy;
+      if (i < 0 || i >= H) continue;
+      const float py = (float)i + 0.5f;
+      for (int c = c0; c < c1; c += cstep) {
+        if (c % stride) continue;  // sparse windows visit every stride-th column
+        const int64_t j = jc + c - window;
+        if (j < 0 || j >= W) continue;
+        vis_eval_pixel(s, wk, pl, I, REC, RS, k, v * HW + i * W + j, (float)j + 0.5f, py, K, C, f, cx, cy, inv_f, u,
+                       vv, z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t);
       }
     }
+    for (int a = 0; a < 3; ++a) acc[a] += t[a];
   }
   const float* Rv = Rm + v * 9;  // world contribution = R^T acc
 #pragma unroll

@@ -1,7 +1,8 @@
 // Per-splat formulas shared by the CPU kernel (dss_cpu.cpp, vectorised loops over points) and the
 // CUDA kernel (dss_cuda.cu, a thread per point or splat): the EWA projection of one (view, point)
-// (dss/splats.py project_splats) forward and backward, the splat's quadratic form, and one cache
-// entry's share of the blend backward (Eq. sumI's smooth terms). float32 in the torch expressions'
+// (dss/splats.py project_splats) forward and backward, the splat's quadratic form, one cache
+// entry's share of the blend backward (Eq. sumI's smooth terms), and the order in which the
+// visibility gradient adds a window's contributions. float32 in the torch expressions'
 // order; both are built without contraction (g++ -ffp-contract=off, nvcc --fmad=false) and with
 // IEEE division and square root, so the CPU and the GPU give the same bits (expf aside: CUDA's is
 // within 2 ulp of the host's).
@@ -180,5 +181,18 @@ DSS_SPLAT_FN SplatGrad project_backward_one(const float* p, const float* n, cons
   }
   return out;
 }
+
+// The visibility gradient's sum over a point's window (2 w + 1 columns, column offset c = dx + w)
+// is formed in partial sums, each over its columns in row-major order, then added in partial
+// order: partial c % 8 for the first mw = (2 w + 1) / 8 * 8 columns, partial 8 + (c - mw) for the
+// rest. The CPU kernel's vector path then keeps lane l's sums in a vector lane (no serial chain
+// through every pixel: 1.18x on the 20K position step's visibility backward), and the scalar
+// path, the CUDA kernel and the emulator add in the same order, so all give the same bits. Each
+// partial starts at +0 and a skipped pixel adds nothing, which equals adding +0: a sum that
+// started at +0 is never -0.
+constexpr int kVisPartials = 15;  // 8 lanes + at most 7 columns beyond the last run of 8
+DSS_SPLAT_FN int vis_window_runs(int64_t window) { return (int)((2 * window + 1) / 8 * 8); }
+DSS_SPLAT_FN int vis_partial_count(int64_t window) { return 8 + (int)(2 * window + 1) - vis_window_runs(window); }
+DSS_SPLAT_FN int vis_partial(int64_t c, int mw) { return c < mw ? (int)(c & 7) : 8 + (int)(c - mw); }
 
 }  // namespace dss_splat
