@@ -63,6 +63,40 @@ def renderer_settings(node) -> RenderSettings:  # noqa: F821
     return RenderSettings(**d)
 
 
+def resolve_device(value) -> torch.device:  # noqa: F821
+    """The device an app's DSS optimisation runs on, from its ``device`` setting.
+
+    ``cpu`` (or null), ``cuda`` / ``cuda:N``, or ``auto`` (the first GPU when torch sees one, else
+    the CPU). Refuses a GPU that this torch build or machine does not have, saying which.
+    """
+    import torch
+
+    name = "cpu" if value in (None, "") else str(value).strip().lower()
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name != "cpu" and not name.startswith("cuda"):
+        raise ValueError(f"device must be cpu, cuda, cuda:N or auto, got {value!r}")
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device={value} but torch sees no GPU (torch {torch.__version__}, CUDA build: "
+                             f"{torch.version.cuda or 'none'}); use device=cpu or install a CUDA build of torch")
+        dev = torch.device(name)
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device={value} but torch sees {torch.cuda.device_count()} GPU(s)")
+        return dev
+    return torch.device("cpu")
+
+
+def describe_device(dev) -> str:
+    """``cpu`` or ``cuda:0 (NVIDIA H100 80GB HBM3)``: what metrics.json records."""
+    import torch
+
+    if dev.type != "cuda":
+        return str(dev)
+    index = dev.index if dev.index is not None else torch.cuda.current_device()
+    return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
+
+
 def optimization_report(history: dict, t_start: float, t_opt: float) -> dict:
     """The metrics.json fields every optimisation app reports (schedule, steps, timings, load)."""
     import os
@@ -78,6 +112,7 @@ def optimization_report(history: dict, t_start: float, t_opt: float) -> dict:
         "time_s": {"total": time.perf_counter() - t_start, "optimization": t_opt,
                    "reference_generation": history.get("reference_seconds"),
                    "per_step": t_opt / max(1, history.get("steps") or 1)},
+        "device": history.get("device", "cpu"),
         "torch_threads": torch.get_num_threads(),
         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }

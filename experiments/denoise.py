@@ -38,8 +38,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.common import (
+    describe_device,
     optimization_report,
     positional_to_override,
+    resolve_device,
     run_dir,
     save_config,
     save_metrics,
@@ -428,18 +430,26 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
     from experiments.reference_generators import SpecViewSampler
 
     pn, center, scale = normalize_unit_diagonal(points)
+    dev = resolve_device(cfg.get("device"))
     ocfg = optimizer_config(cfg.optimizer, cfg.views, cfg.seed)
     sampler = SpecViewSampler(spec, views=ocfg.views, seed=int(cfg.seed), jitter=ocfg.view_jitter)
     shading = spec.point_light() if shading is None else shading
     total = (ocfg.cycles + ocfg.error_aware_cycles) * (ocfg.normal_steps + ocfg.point_steps)
     bar, update = progress_bar(total, desc, bool(cfg.get("progress", True)))
     try:
-        result, ref = refine_with_reference(pn, normals, generator, config=ocfg, settings=spec.render_settings(),
-                                            shading=shading, sampler=sampler, backend=spec.backend, progress=update)
+        # on a GPU the optimisation (renders, regularisers, kNN) runs there; the references'
+        # image filter or network gets CPU arrays and hands its images back on the device
+        result, ref = refine_with_reference(pn.to(dev), normals.to(dev), generator, config=ocfg,
+                                            settings=spec.render_settings(), shading=shading, sampler=sampler,
+                                            backend=spec.backend, progress=update)
     finally:
         bar.close()
-    out_p = result.points * scale + center
-    return out_p, result.normals, result.history, ref, (center, scale, pn), ocfg
+    if ref.last is not None:  # the figures render on the CPU
+        cams_r, imgs, mask, refs = ref.last
+        ref.last = (cams_r.to("cpu"), imgs.cpu(), mask.cpu(), refs.cpu())
+    result.history["device"] = describe_device(dev)
+    out_p = result.points.cpu() * scale + center
+    return out_p, result.normals.cpu(), result.history, ref, (center, scale, pn), ocfg
 
 
 def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list, ref, history: dict, ocfg,
@@ -513,6 +523,7 @@ def run(cfg: DictConfig) -> dict:
     input_path, clean_path, mesh_path, is_example = _example_defaults(cfg)
     # Everything that can be refused is checked before any work or any output file.
     check_wandb(cfg.get("wandb"))
+    resolve_device(cfg.get("device"))
     output = resolve_output(cfg, out, "denoised.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))

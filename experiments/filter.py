@@ -28,6 +28,7 @@ from omegaconf import DictConfig
 from experiments.common import (
     optimization_report,
     positional_to_override,
+    resolve_device,
     run_dir,
     save_config,
     save_metrics,
@@ -76,6 +77,7 @@ def run(cfg: DictConfig) -> dict:
         clean_path = clean_path or str(EXAMPLE_DIR / "clean.ply")
         mesh_path = mesh_path or str(EXAMPLE_DIR / "mesh.ply")
     check_wandb(cfg.get("wandb"))
+    resolve_device(cfg.get("device"))
     output = resolve_output(cfg, out, "filtered.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))

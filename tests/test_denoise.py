@@ -234,7 +234,7 @@ def test_denoise_app_l0_end_to_end(case, tmp_path):
     assert m["steps"] == 2 * 19 and len(json.loads((out / "loss.json").read_text())["loss"]) == 2 * 19  # 2 cycles x (T_n 19 + T_p 0)
     assert m["render"]["image_size"] == [64, 64] and m["reference"]["name"] == "l0"
     assert m["input"]["normals"].startswith("estimated") and m["input"]["nan_rows_dropped"] == 0
-    assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0
+    assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0 and m["device"] == "cpu"
     ne = m["normal_error_deg"]
     assert set(ne) == {"input_pca", "optimized", "output"} and all(0 <= v["mean"] <= 90 for v in ne.values())
     from dss.pointcloud import load_ply
@@ -335,6 +335,12 @@ def test_denoise_app_bad_inputs(case, tmp_path, foreign_onnx):
     assert not list(out.glob("*.ply"))
     m = run(cfg(tmp_path / "nan_drop", f"input={nan_ply}"))
     assert m["input"]["nan_rows_dropped"] == 3 and m["input"]["points"] == 1997
+    # a GPU that torch does not see is refused before any work
+    if not torch.cuda.is_available():
+        out = tmp_path / "gpu"
+        with pytest.raises(ValueError, match=r"device=cuda but torch sees no GPU.*device=cpu"):
+            run(cfg(out, "device=cuda"))
+        assert not list(out.glob("*.ply")) and not (out / "metrics.json").exists()
     # an existing output is refused (and left untouched) unless overwrite=true
     target = tmp_path / "exists.ply"
     save_ply(target, PointCloud(torch.zeros(4, 3) + torch.arange(4.0)[:, None]))
@@ -345,6 +351,47 @@ def test_denoise_app_bad_inputs(case, tmp_path, foreign_onnx):
     m = run(cfg(tmp_path / "ow", f"output={target}", "overwrite=true"))
     assert target.read_bytes() != before and m["output"] == str(target)
     assert not list(tmp_path.glob(".exists.*"))  # no temp files left behind
+
+
+def test_resolve_device(monkeypatch):
+    """The apps' ``device`` setting: cpu by default, auto takes a GPU only when torch sees one,
+    and a GPU that is not there, or a device torch does not run DSS on, is refused by name."""
+    from experiments.common import resolve_device
+
+    assert resolve_device(None) == torch.device("cpu") and resolve_device("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == torch.device("cpu")
+    with pytest.raises(ValueError, match=r"device=cuda:1 but torch sees no GPU"):
+        resolve_device("cuda:1")
+    with pytest.raises(ValueError, match=r"device must be cpu, cuda, cuda:N or auto, got 'mps'"):
+        resolve_device("mps")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert resolve_device("auto") == torch.device("cuda") and resolve_device("CUDA:0") == torch.device("cuda:0")
+    with pytest.raises(ValueError, match=r"device=cuda:2 but torch sees 1 GPU"):
+        resolve_device("cuda:2")
+
+
+@pytest.mark.gpu
+def test_denoise_app_runs_on_a_gpu(case, tmp_path):
+    """device=cuda: the optimisation (CUDA renderer, regularisers, kNN) on the GPU gives the CPU
+    run's result up to float rounding, which steps can amplify but not into a different cloud."""
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    from experiments.denoise import run
+
+    res = {}
+    for dev in ("cpu", "cuda"):
+        res[dev] = run(compose_cfg("denoise", denoise_overrides(case, tmp_path / dev, f"device={dev}")))
+    assert res["cuda"]["device"].startswith("cuda:") and res["cpu"]["device"] == "cpu"
+    a, b = (res[d]["summary"]["output"]["paper"]["chamfer"] for d in ("cpu", "cuda"))
+    assert abs(a - b) <= 0.05 * a, (a, b)
+    assert b < res["cuda"]["summary"]["input"]["paper"]["chamfer"]
+    from dss.pointcloud import load_ply
+
+    pa, pb = (load_ply(tmp_path / d / "denoised.ply").points for d in ("cpu", "cuda"))
+    diag = float((pa.max(0).values - pa.min(0).values).norm())
+    assert (pa - pb).norm(dim=1).median() < 1e-3 * diag
 
 
 def test_shipped_example_is_complete_and_consistent():
