@@ -263,6 +263,37 @@ def test_tangent_planes_reproduce_the_centre_depth():
         RenderSettings(occlusion_depth="middle")
 
 
+def test_tangent_plane_kernel_matches_its_torch_twin(cpp_backend):
+    """dss_cpu tangent_planes_forward (render()'s planes on the cpp backend) gives the torch
+    tangent_planes' planes to float32 rounding, in both modes and for float64 inputs; points
+    behind the camera get 1 / z = 0 in "center" mode. (Planes nearly through the camera centre, n . p ~ 0, are
+    ill-conditioned: both sides' coefficients are then rounding noise, so they are left out.)"""
+    from dss import _ext
+    from dss.splats import tangent_planes
+
+    mod = _ext.load_cpu()
+    pts, nrm, cams, _, _ = random_scene(4, n=3001, views=5)
+    c = -(cams.R[0].T @ cams.t[0])  # camera 0's centre (world)
+    pts[:20] = c + cams.R[0].T @ torch.tensor([0.0, 0.0, -0.5]) + 0.05 * torch.randn(
+        20, 3, generator=torch.Generator().manual_seed(5))  # behind camera 0
+    pc = cams.to(torch.float64).world_to_camera(pts.double())
+    nc = torch.einsum("vij,nj->vni", cams.R.double(), nrm.double())
+    cond = ((nc * pc).sum(-1).abs() / (nc.norm(dim=-1) * pc.norm(dim=-1))) > 1e-2  # (V, N)
+    assert cond.float().mean() > 0.8
+    for mode in ("plane", "center"):
+        want = tangent_planes(pts, nrm, cams, mode).float()
+        for dt in (torch.float32, torch.float64):
+            c2 = cams.to(dt)
+            got = mod.tangent_planes_forward(pts.to(dt), nrm.to(dt), c2.R, c2.t, c2.focal, c2.principal,
+                                             mode == "center")
+            assert got.dtype == torch.float32 and got.shape == want.shape
+            scale = want.abs().amax(-1, keepdim=True).clamp_min(1e-12)  # entries differ in size
+            rel = ((got - want).abs() / scale).amax(-1)
+            assert rel[cond].max() < 1e-4, (mode, dt, rel[cond].max().item())  # ulps / cond
+            if mode == "center":  # behind camera 0: 1/z = 0
+                assert (got[0, :20] == 0).all() and (want[0, :20] == 0).all()
+
+
 @pytest.mark.parametrize("backend", ["reference", "cpp", pytest.param("cuda", marks=pytest.mark.gpu)])
 def test_spatial_sort_changes_nothing_but_speed(backend, request):
     """render() draws a Morton-sorted copy (dss.ordering) and maps everything back: images,

@@ -1411,6 +1411,37 @@ DSS_AVX2 void project_backward_avx2(const ProjectGradView& a, int64_t N, int64_t
 }
 #endif
 
+// Inverse-depth tangent planes (V, N, 3) for the visibility gradient's occlusion test
+// (dss/splats.py tangent_planes, its torch twin; splat_math.h tangent_plane_one): one pass over
+// (view, point) instead of ~20 torch operators on (V, N) tensors (20K points, 12 views, 2
+// threads: ~5 ms per position step in torch). center: (0, 0, 1 / z) for every point.
+torch::Tensor tangent_planes_forward(torch::Tensor points, torch::Tensor normals, torch::Tensor R, torch::Tensor t,
+                                     torch::Tensor focal, torch::Tensor principal, bool center) {
+  TORCH_CHECK(points.dim() == 2 && points.size(1) == 3 && normals.sizes() == points.sizes(),
+              "points and normals must be (N, 3)");
+  TORCH_CHECK(R.dim() == 3 && R.size(1) == 3 && R.size(2) == 3, "R must be (V, 3, 3)");
+  points = points.contiguous().to(torch::kFloat32);
+  normals = normals.contiguous().to(torch::kFloat32);
+  R = R.contiguous().to(torch::kFloat32);
+  t = t.contiguous().to(torch::kFloat32);
+  focal = focal.contiguous().to(torch::kFloat32);
+  principal = principal.contiguous().to(torch::kFloat32);
+  const int64_t N = points.size(0), V = R.size(0);
+  TORCH_CHECK(t.numel() == V * 3 && focal.numel() == V && principal.numel() == V * 2, "one camera per view");
+  auto out = pooled_empty({V, N, 3}, torch::kFloat32);  // every entry is written below
+  const float *Pp = points.data_ptr<float>(), *Nn = normals.data_ptr<float>(), *Rr = R.data_ptr<float>();
+  const float *Tt = t.data_ptr<float>(), *Ff = focal.data_ptr<float>(), *Cc = principal.data_ptr<float>();
+  float* O = out.data_ptr<float>();
+  const int64_t nb = (N + 4095) / 4096;
+  dynamic_for(V * nb, 1, [&](int64_t item) {
+    const int64_t v = item / nb, k0 = (item % nb) * 4096, k1 = std::min(N, k0 + 4096);
+    for (int64_t k = k0; k < k1; ++k)
+      dss_splat::tangent_plane_one(Pp + k * 3, Nn + k * 3, Rr + v * 9, Tt + v * 3, Ff[v], Cc[v * 2], Cc[v * 2 + 1],
+                                   center, O + (v * N + k) * 3);
+  });
+  return out;
+}
+
 // Backward of project_splats_forward (the same formulas as dss/splats.py project_splats): given
 // dL/dpacked (V,N,10), returns dL/dpoints and dL/dnormals (N,3) with sigma, cameras and the
 // filter held fixed. Fields 0-8 (u, v, conic a, b2, c, norm, depth, rx, ry) carry gradients; the
@@ -1754,6 +1785,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 paths");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
+  m.def("tangent_planes_forward", &tangent_planes_forward, "inverse-depth tangent planes (V,N,3) (CPU)");
   m.def("morton_order", &morton_order, "stable Z-order permutation of (N, 3) float32 points (CPU)");
   m.def("smape_sum", &smape_sum, "SMAPE sum and its derivative in one pass (CPU)");
   m.def("pooled_clone", &pooled_clone, "contiguous copy in a reused output block");

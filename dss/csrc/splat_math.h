@@ -182,6 +182,30 @@ DSS_SPLAT_FN SplatGrad project_backward_one(const float* p, const float* n, cons
   return out;
 }
 
+// The inverse-depth tangent plane of one (view, point) (dss/splats.py tangent_planes, whose torch
+// expressions it follows term by term): out = (A, B, C) with 1 / z = A px + B py + C on the
+// point's tangent plane; (0, 0, 1 / z) for planes through the camera centre, and always for
+// center (the centre depth at every pixel). p, n: world (3); Rv (3x3), tv (3): world to camera.
+DSS_SPLAT_FN void tangent_plane_one(const float* p, const float* n, const float* Rv, const float* tv, float f,
+                                    float cx, float cy, bool center, float* out) {
+  float pc[3], nc[3];
+  for (int i = 0; i < 3; ++i) {
+    pc[i] = ((Rv[i * 3] * p[0] + Rv[i * 3 + 1] * p[1]) + Rv[i * 3 + 2] * p[2]) + tv[i];
+    nc[i] = (Rv[i * 3] * n[0] + Rv[i * 3 + 1] * n[1]) + Rv[i * 3 + 2] * n[2];
+  }
+  const float z = pc[2];
+  const float inv_z = z > 0.f ? 1.f / (z < 1e-12f ? 1e-12f : z) : 0.f;
+  const float c0 = (nc[0] * pc[0] + nc[1] * pc[1]) + nc[2] * pc[2];  // n . p in the camera frame
+  const bool ok = !center && (c0 < 0.f ? -c0 : c0) > 1e-12f;
+  if (!ok) {
+    out[0] = 0.f, out[1] = 0.f, out[2] = inv_z;
+    return;
+  }
+  out[0] = nc[0] / (f * c0);
+  out[1] = nc[1] / (f * c0);
+  out[2] = ((nc[2] - nc[0] * cx / f) - nc[1] * cy / f) / c0;
+}
+
 // The visibility gradient's sum over a point's window (2 w + 1 columns, column offset c = dx + w)
 // is formed in partial sums, each over its columns in row-major order, then added in partial
 // order: partial c % 8 for the first mw = (2 w + 1) / 8 * 8 columns, partial 8 + (c - mw) for the
