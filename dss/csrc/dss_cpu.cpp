@@ -661,7 +661,7 @@ inline void add_entries_within(const Rec& R, int64_t K, int64_t p, int e0, float
 }
 
 template <int64_t KC, int64_t CC, class Rec>
-inline VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
+DSS_INLINE VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
                           int64_t p, float px, float py) {
   const int64_t K = KC > 0 ? KC : Krt, C = CC > 0 ? CC : Crt;
   const float d0 = R.d0(p), merge = Q.merge;
@@ -715,7 +715,7 @@ inline VisState vis_state(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint
 // mode 0 (dss): the linearised step between the two visibility states; mode 1 (rbf): the
 // derivative of a smooth Gaussian visibility h = exp(-q/2).
 template <int64_t KC, int64_t CC, class Rec>
-inline void eval_scalar(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
+DSS_INLINE void eval_scalar(const Rec& R, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
                         int64_t mode, int64_t p, float px, float py, double acc[3]) {
   const VisState st = vis_state<KC, CC>(R, Krt, Crt, P, Q, p, px, py);
   const float gd = st.gd;
