@@ -141,6 +141,7 @@ def refine_with_reference(
     keep_background: bool = True,
     callback: Callable[[int, dict], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
+    device: torch.device | str | None = None,
 ) -> tuple[OptimizationResult, ReferenceRenderer]:
     """Move points and normals so that their renders match ``image_fn`` of the input's renders.
 
@@ -158,10 +159,14 @@ def refine_with_reference(
         center, radius: the sphere the default sampler's cameras look at.
         keep_background: keep the input's silhouette in the references.
         callback, progress: passed to :class:`MultiViewOptimizer` / its ``run``.
+        device: where the optimisation runs (e.g. ``"cuda"``: renders, regularisers and kNN on
+            the GPU); None: the points' device. ``image_fn`` gets images on that device. The
+            results and the renderer's ``last`` come back on the points' device.
 
     Returns:
         (result, reference renderer): ``result.points``/``.normals`` (N, 3), ``result.history``
-        (loss per step, wall time, ...); the renderer holds the latest references (``last``).
+        (loss per step, wall time, ...; ``"device"``: where it ran); the renderer holds the
+        latest references (``last``).
     """
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {tuple(points.shape)} and {tuple(normals.shape)}")
@@ -169,6 +174,9 @@ def refine_with_reference(
         raise ValueError("points or normals contain NaN/inf rows; drop them first (dss.pointcloud.finite_rows)")
     config = config or OptimizerConfig(cycles=16, normal_steps=19, point_steps=1)
     settings = settings or RenderSettings()
+    home = points.device
+    dev = home if device is None else torch.device(device)
+    points, normals = points.to(dev), normals.to(dev)
     ref = ReferenceRenderer(points, normals, image_fn, settings, shading, backend, keep_background)
     opt = MultiViewOptimizer(points, normals, ref, config=config, settings=settings, center=center, radius=radius,
                              shading=shading, backend=backend, callback=callback, sampler=sampler,
@@ -178,6 +186,12 @@ def refine_with_reference(
     result = opt.run(progress=progress)
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
+    result.history["device"] = str(dev)
+    if dev != home:  # hand everything back where the caller's points live
+        result.points, result.normals = result.points.to(home), result.normals.to(home)
+        if ref.last is not None:
+            cams, images, mask, refs = ref.last
+            ref.last = (cams.to(home), images.to(home), mask.to(home), refs.to(home))
     return result, ref
 
 

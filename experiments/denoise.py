@@ -437,19 +437,16 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
     total = (ocfg.cycles + ocfg.error_aware_cycles) * (ocfg.normal_steps + ocfg.point_steps)
     bar, update = progress_bar(total, desc, bool(cfg.get("progress", True)))
     try:
-        # on a GPU the optimisation (renders, regularisers, kNN) runs there; the references'
-        # image filter or network gets CPU arrays and hands its images back on the device
-        result, ref = refine_with_reference(pn.to(dev), normals.to(dev), generator, config=ocfg,
-                                            settings=spec.render_settings(), shading=shading, sampler=sampler,
-                                            backend=spec.backend, progress=update)
+        # on a GPU the optimisation (renders, regularisers, kNN) runs there and the results come
+        # back to the CPU; the reference network gets CPU arrays and its images go to the GPU
+        result, ref = refine_with_reference(pn, normals, generator, config=ocfg, settings=spec.render_settings(),
+                                            shading=shading, sampler=sampler, backend=spec.backend, progress=update,
+                                            device=dev)
     finally:
         bar.close()
-    if ref.last is not None:  # the figures render on the CPU
-        cams_r, imgs, mask, refs = ref.last
-        ref.last = (cams_r.to("cpu"), imgs.cpu(), mask.cpu(), refs.cpu())
     result.history["device"] = describe_device(dev)
-    out_p = result.points.cpu() * scale + center
-    return out_p, result.normals.cpu(), result.history, ref, (center, scale, pn), ocfg
+    out_p = result.points * scale + center
+    return out_p, result.normals, result.history, ref, (center, scale, pn), ocfg
 
 
 def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list, ref, history: dict, ocfg,

@@ -179,6 +179,22 @@ def test_pipeline_improves_chamfer(case):
     assert scores["l0"] < before, (before, scores)
 
 
+def test_refine_with_reference_device_argument():
+    """``device=`` names where the optimisation runs; None (the points' device) and an explicit
+    "cpu" give the same result, and the history says where it ran. (The GPU case:
+    tests/test_render_cuda.py::test_refine_with_reference_runs_on_a_gpu_for_cpu_points.)"""
+    from scenes import sphere_points
+
+    pts, nrm = sphere_points(600, 0.4)
+    pts = pts + 0.004 * torch.randn(pts.shape, generator=torch.Generator().manual_seed(1))
+    cfg = OptimizerConfig(cycles=1, normal_steps=2, point_steps=1, views=2)
+    runs = [refine_with_reference(pts, nrm, lambda im: im, config=cfg, image_size=32, center=(0, 0, 0), radius=0.5,
+                                  device=dev)[0] for dev in (None, "cpu")]
+    assert all(r.history["device"] == "cpu" and r.points.device.type == "cpu" for r in runs)
+    assert torch.equal(runs[0].points, runs[1].points) and torch.equal(runs[0].normals, runs[1].normals)
+    assert not torch.equal(runs[0].points, pts)  # it did move
+
+
 def test_reference_renderer_keeps_background_and_checks_output(case):
     from dss.cameras import fps_sphere_cameras
     from dss.pipeline import ReferenceRenderer
