@@ -40,11 +40,12 @@ DSS_SPLAT_FN void blend_entry_grad(const float* s, const float* wk, const float*
     drho += (double)gp[c] * (wk[c] - ip[c]) * rden;
     acc[6 + c] += (double)gp[c] * rf * rden;
   }
-  const float q = quad(s[2], s[3], s[4], dx, dy);
-  // exp(-q/2) as the forward computed it (float32): d rho / d norm of rho = norm exp(-q/2)
-  const double ex = expf(-0.5f * q);
+  // d rho / d norm = exp(-q/2) = rho / norm and d rho / dq = -rho / 2, from the forward's rho (no
+  // second exp; rho / norm is within one float32 rounding of the forward's exp). A zero norm
+  // (rho = 0) takes the exp.
+  const double ex = s[5] > 0.f ? (double)rf / (double)s[5] : (double)expf(-0.5f * quad(s[2], s[3], s[4], dx, dy));
   acc[5] += drho * ex;
-  const double dq = -0.5 * drho * (double)s[5] * ex;
+  const double dq = -0.5 * drho * (double)rf;
   acc[2] += dq * dx * dx;
   acc[3] += dq * dx * dy;
   acc[4] += dq * dy * dy;
