@@ -1538,11 +1538,7 @@ DSS_INLINE double smape_block(const float* X, const float* Y, float* G, int64_t 
   return ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
 }
 
-// smape_block for one ISA (the same operations: the same bits on both)
-template <bool kGrad>
-double smape_block_base(const float* X, const float* Y, float* G, int64_t n, float eps, float gscale) {
-  return smape_block<kGrad>(X, Y, G, n, eps, gscale);
-}
+// smape_block compiled for AVX2 and (inlined below) for the baseline: the same operations, bits
 #ifdef DSS_HAVE_AVX2
 template <bool kGrad>
 DSS_AVX2 double smape_block_avx2(const float* X, const float* Y, float* G, int64_t n, float eps, float gscale) {
@@ -1554,7 +1550,7 @@ double smape_block_any(bool vec, const float* X, const float* Y, float* G, int64
 #ifdef DSS_HAVE_AVX2
   if (vec) return smape_block_avx2<kGrad>(X, Y, G, n, eps, gscale);
 #endif
-  return smape_block_base<kGrad>(X, Y, G, n, eps, gscale);
+  return smape_block<kGrad>(X, Y, G, n, eps, gscale);
 }
 }  // namespace
 

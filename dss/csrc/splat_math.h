@@ -53,6 +53,14 @@ DSS_SPLAT_FN void blend_entry_grad(const float* s, const float* wk, const float*
   acc[1] += -dq * (s[3] * dx + 2.0 * s[4] * dy);
 }
 
+// A world point p and normal n in the camera frame: pc = Rv p + tv, nc = Rv n (left to right).
+DSS_SPLAT_FN void to_camera(const float* p, const float* n, const float* Rv, const float* tv, float* pc, float* nc) {
+  for (int a = 0; a < 3; ++a) {
+    pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + tv[a];
+    nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
+  }
+}
+
 struct SplatGeometry {
   float X, Y, Z, Zs, nc[3], inv, nh[3], m1[3], m2[3], m1n, m2n, A11, A12, A22, w, detJ, s2, S11, S12, S22, detS;
 };
@@ -65,10 +73,7 @@ DSS_SPLAT_FN SplatGeometry splat_geometry(const float* p, const float* n, const 
                                           float sigma, float fv, float zn) {
   SplatGeometry g;
   float pc[3];
-  for (int a = 0; a < 3; ++a) {
-    pc[a] = Rv[a * 3] * p[0] + Rv[a * 3 + 1] * p[1] + Rv[a * 3 + 2] * p[2] + tv[a];
-    g.nc[a] = Rv[a * 3] * n[0] + Rv[a * 3 + 1] * n[1] + Rv[a * 3 + 2] * n[2];
-  }
+  to_camera(p, n, Rv, tv, pc, g.nc);
   g.X = pc[0], g.Y = pc[1], g.Z = pc[2];
   const float Zs = g.Z > zn ? g.Z : 1.f;
   g.Zs = Zs;
@@ -190,10 +195,7 @@ DSS_SPLAT_FN SplatGrad project_backward_one(const float* p, const float* n, cons
 DSS_SPLAT_FN void tangent_plane_one(const float* p, const float* n, const float* Rv, const float* tv, float f,
                                     float cx, float cy, bool center, float* out) {
   float pc[3], nc[3];
-  for (int i = 0; i < 3; ++i) {
-    pc[i] = ((Rv[i * 3] * p[0] + Rv[i * 3 + 1] * p[1]) + Rv[i * 3 + 2] * p[2]) + tv[i];
-    nc[i] = (Rv[i * 3] * n[0] + Rv[i * 3 + 1] * n[1]) + Rv[i * 3 + 2] * n[2];
-  }
+  to_camera(p, n, Rv, tv, pc, nc);
   const float z = pc[2];
   const float inv_z = z > 0.f ? 1.f / (z < 1e-12f ? 1e-12f : z) : 0.f;
   const float c0 = (nc[0] * pc[0] + nc[1] * pc[1]) + nc[2] * pc[2];  // n . p in the camera frame
