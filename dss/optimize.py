@@ -62,6 +62,7 @@ from .cameras import Cameras
 from .gc_pause import frozen_gc
 from .hull import fill_displacement, hull_displacement, nearest_covered
 from .losses import l1_loss, smape_loss
+from .pointcloud import all_finite
 from .regularizers import (
     ProjectionLoss,
     RegularizerConfig,
@@ -435,7 +436,7 @@ class MultiViewOptimizer:
             if image_moves_points and self.cfg.fill_step > 0:
                 d, _ = fill_displacement(self.points, cams, self._coverage(target), out.mask)
                 self.points.add_(self.cfg.fill_step * self._cycle_decay * d)
-        if not (torch.isfinite(self.points).all() and torch.isfinite(self.normals).all()):
+        if not all_finite(self.points, self.normals):
             self._diverged("a step produced NaN/inf parameters", saved)
             return float("nan"), float("nan")
         return float(img_loss.detach()), float(img_loss.detach())

@@ -7,6 +7,7 @@ from dss.pointcloud import (
     PointCloud,
     PointCloudError,
     add_gaussian_noise,
+    all_finite,
     bbox_diagonal,
     estimate_normals,
     load_ply,
@@ -142,3 +143,19 @@ def test_find_outliers_keeps_a_clean_or_small_cloud_and_checks_arguments():
     for bad in ({"k": 0}, {"z_threshold": 0.0}, {"ratio_threshold": -1.0}, {"iterations": 0}):
         with pytest.raises(ValueError, match="outlier"):
             find_outliers(clean, **bad)
+
+
+def test_all_finite_agrees_with_the_elementwise_test():
+    """The sum's shortcut never changes the answer: NaN and inf anywhere are found, and finite
+    values whose sum overflows (the shortcut cannot decide) still count as finite."""
+    x = torch.randn(1000, 3)
+    assert all_finite(x, x.double(), torch.arange(6).view(2, 3), torch.empty(0, 3))
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        y = x.clone()
+        y[517, 2] = bad
+        assert not all_finite(x, y)
+    huge = torch.full((4, 3), 3e38)  # float32 sum overflows to inf
+    assert not torch.isfinite(huge.sum()) and all_finite(huge)
+    both = x.clone()
+    both[0, 0], both[1, 0] = float("inf"), -float("inf")  # sum NaN
+    assert not all_finite(both)

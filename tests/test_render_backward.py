@@ -489,8 +489,10 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend)
     (dss/csrc/splat_math.h vis_partial: lane l of every run into partial l). The parameters
     cover the compiled (K, C) variants and the run-time one, windows whose rows are runs of 8
     plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1), and points near and
-    beyond the image border (runs partly off the image use masked loads). Narrower windows take
-    the scalar path (nothing to compare)."""
+    beyond the image border (runs partly off the image use masked loads). Windows of 9 to 15
+    columns wholly on the image (most points here) take the chunked walk across row ends
+    (VisFlatPlan), whose lanes are moved to their columns' partials; the others the row walk.
+    Narrower windows take the scalar path (nothing to compare)."""
     from dss import _ext
     from dss.splats import tangent_planes
 

@@ -139,15 +139,6 @@ torch::Tensor pooled_empty(at::IntArrayRef sizes, at::ScalarType dtype) {
   return torch::from_blob(ptr, sizes, park, torch::TensorOptions().dtype(dtype));
 }
 
-// A contiguous copy of t in a block from the cache: _CppBlend's output image (a fresh 9 MB
-// allocation per render, at 12 views of 256x256, costs its page faults every time).
-torch::Tensor pooled_clone(torch::Tensor t) {
-  t = t.contiguous();
-  auto out = pooled_empty(t.sizes(), t.scalar_type());
-  if (t.numel() > 0) std::memcpy(out.data_ptr(), t.data_ptr(), t.nbytes());
-  return out;
-}
-
 // Frees the parked blocks; returns how many bytes were released.
 int64_t empty_cache() {
   BlockCache& cache = block_cache();
@@ -764,8 +755,11 @@ DSS_INLINE void eval_scalar(const Rec& R, int64_t Krt, int64_t Crt, const VisPoi
 // partial sum l (in double, two vectors of 4 per coordinate), the order that splat_math.h fixes
 // for every path, so the result is bit for bit the scalar one (tests/test_render_backward.py
 // checks). A row's pixels beyond its runs of 8 (the 9th of a 9-wide window) go through
-// eval_scalar into their own partials. Windows narrower than 8 pixels, sparse (stride > 1)
-// windows and the rbf rule take the scalar path.
+// eval_scalar into their own partials, except in windows of 9 to 15 columns that lie wholly on
+// the image: those are walked in chunks of 8 consecutive pixels in row-major order, across row
+// ends (VisFlatPlan; 10 chunks and one pixel for 9 x 9 instead of 9 chunks and 9 pixels), with
+// each lane's contributions moved to its column's partial. Windows narrower than 8 pixels,
+// sparse (stride > 1) windows and the rbf rule take the scalar path.
 #ifdef DSS_HAVE_AVX2
 // One chunk's contributions, added per lane as acc += (x1, y1, 0); acc += (x2, y2, z): the two
 // (c) steps (z = 0) or the (a)/(b) step (x2 = y2 = 0); lanes that do not contribute hold +0.
@@ -783,6 +777,30 @@ struct VisAddr {
   bool masked;
   int64_t p0;
   __m256i oki;
+  DSS_AVX2 inline __m256 ld(const float* plane) const {
+    return masked ? _mm256_maskload_ps(plane + p0, oki) : _mm256_loadu_ps(plane + p0);
+  }
+  DSS_AVX2 inline __m256i ldi(const int32_t* plane) const {
+    return masked ? _mm256_maskload_epi32((const int*)(plane + p0), oki)
+                  : _mm256_loadu_si256((const __m256i*)(plane + p0));
+  }
+};
+
+// A chunk of 8 consecutive pixels of a window in row-major order, which may run over the end of
+// one window row into the next: lanes below the split from offsets p0 + l (the end of row r),
+// the others from p1 + l (the start of row r + 1), so a 9-wide window is 10 chunks and one pixel
+// instead of 9 chunks and 9 single pixels. Every lane is on the image (the caller checks).
+struct VisSplitAddr {
+  int64_t p0, p1;
+  __m256 hi;  // lanes taken from p1
+  __m256i oki;
+  DSS_AVX2 inline __m256 ld(const float* plane) const {
+    return _mm256_blendv_ps(_mm256_loadu_ps(plane + p0), _mm256_loadu_ps(plane + p1), hi);
+  }
+  DSS_AVX2 inline __m256i ldi(const int32_t* plane) const {
+    return _mm256_castps_si256(_mm256_blendv_ps(_mm256_loadu_ps((const float*)(plane + p0)),
+                                                 _mm256_loadu_ps((const float*)(plane + p1)), hi));
+  }
 };
 
 template <int64_t KC, int64_t CC>
@@ -810,14 +828,6 @@ struct VisLanes {
     for (int64_t ch = 0; ch < C; ++ch) wk[ch] = _mm256_set1_ps(P.wk[ch]);
   }
 
-  static DSS_AVX2 inline __m256 ld(const VisAddr& a, const float* plane) {
-    return a.masked ? _mm256_maskload_ps(plane + a.p0, a.oki) : _mm256_loadu_ps(plane + a.p0);
-  }
-  static DSS_AVX2 inline __m256i ldi(const VisAddr& a, const int32_t* plane) {
-    return a.masked ? _mm256_maskload_epi32((const int*)(plane + a.p0), a.oki)
-                    : _mm256_loadu_si256((const __m256i*)(plane + a.p0));
-  }
-
   // add_entries_within in lanes: the scalar loop's stop becomes a mask that stays off once off.
   DSS_AVX2 void add_entries_within(const __m256i* ie, const __m256* de, const __m256* re, const __m256* ge,
                                    int64_t e0, __m256 alive, __m256 lim, __m256& den, __m256& gn) const {
@@ -831,22 +841,23 @@ struct VisLanes {
   }
 
   // The 8 evaluations of one chunk; (px, py) the pixel centres.
-  DSS_AVX2 void eval(const VisAddr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
+  template <class Addr>
+  DSS_AVX2 void eval(const Addr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.f);
     const __m256i minus1 = _mm256_set1_epi32(-1);
     out.any = false;
-    const __m256 m = _mm256_and_ps(_mm256_castsi256_ps(a.oki), _mm256_cmp_ps(ld(a, R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ));
+    const __m256 m = _mm256_and_ps(_mm256_castsi256_ps(a.oki), _mm256_cmp_ps(a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ));
     if (_mm256_movemask_ps(m) == 0) return;
-    const __m256 d0 = ld(a, R->plane(Rec::kD0)), r1 = ld(a, R->plane(Rec::kDen)), r2 = ld(a, R->plane(Rec::kGn));
+    const __m256 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), r2 = a.ld(R->plane(Rec::kGn));
     const __m256 d0m = _mm256_add_ps(d0, vmerge);
     __m256i ie[8];
     __m256 de[8], re[8], ge[8];
     __m256 found = zero, ek0 = zero, pdk = zero, prk = zero, pgk = zero;
     for (int64_t e = 0; e < K; ++e) {
-      ie[e] = ldi(a, R->idx_plane(e));
-      de[e] = ld(a, R->plane(R->fDep(e)));
-      re[e] = ld(a, R->plane(R->fRho(e)));
-      ge[e] = ld(a, R->plane(R->fGw(e)));
+      ie[e] = a.ldi(R->idx_plane(e));
+      de[e] = a.ld(R->plane(R->fDep(e)));
+      re[e] = a.ld(R->plane(R->fRho(e)));
+      ge[e] = a.ld(R->plane(R->fGw(e)));
       const __m256 me = _mm256_castsi256_ps(_mm256_cmpeq_epi32(ie[e], vk));
       if (e == 0) ek0 = me;
       found = _mm256_or_ps(found, me);
@@ -883,7 +894,7 @@ struct VisLanes {
       }
       const __m256 k1 = _mm256_andnot_ps(empty, _mm256_cmp_ps(zq, d0m, _CMP_NLE_UQ));
       __m256 gw = zero;
-      for (int64_t ch = 0; ch < C; ++ch) gw = _mm256_add_ps(gw, _mm256_mul_ps(ld(a, R->plane(R->fG(ch))), wk[ch]));
+      for (int64_t ch = 0; ch < C; ++ch) gw = _mm256_add_ps(gw, _mm256_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
       __m256 den_n = vnk, gn_n = _mm256_mul_ps(vnk, gw);
       const __m256 mall = _mm256_or_ps(k1, _mm256_cmp_ps(zq, d0, _CMP_GE_OQ));
       den_n = _mm256_blendv_ps(den_n, _mm256_add_ps(den_n, r1), mall);
@@ -896,8 +907,8 @@ struct VisLanes {
       zp = zq;
       kase1 = k1;
     }
-    const __m256 gsel = _mm256_blendv_ps(ld(a, R->plane(Rec::kGb)), _mm256_div_ps(gn, den), _mm256_cmp_ps(den, zero, _CMP_GT_OQ));
-    const __m256 gd = _mm256_sub_ps(gsel, ld(a, R->plane(Rec::kGi)));
+    const __m256 gsel = _mm256_blendv_ps(a.ld(R->plane(Rec::kGb)), _mm256_div_ps(gn, den), _mm256_cmp_ps(den, zero, _CMP_GT_OQ));
+    const __m256 gd = _mm256_sub_ps(gsel, a.ld(R->plane(Rec::kGi)));
     const __m256 act = _mm256_and_ps(m, _mm256_cmp_ps(gd, zero, _CMP_LT_OQ));  // Eq. filteredG
     __m256 act_v = _mm256_and_ps(act, kvis);
     const __m256 act_n = _mm256_andnot_ps(kvis, act);
@@ -964,9 +975,110 @@ DSS_AVX2 inline void add_lanes(__m256d& lo, __m256d& hi, __m256 x) {
   hi = _mm256_add_pd(hi, _mm256_cvtps_pd(_mm256_extractf128_ps(x, 1)));
 }
 
+// A window of n = 2 w + 1 columns, 9 <= n <= 15, walked in row-major order in chunks of 8
+// consecutive pixels (VisSplitAddr), n * n = 8 * nvec + 1 pixels: nvec chunks and the last pixel
+// alone, where the row walk takes n - 8 single pixels per row. Lane l of chunk c is window pixel
+// 8 c + l (row, column as below). For these widths a window column's partial sum
+// (dss_splat::vis_partial) is its column number, so a chunk's contributions are moved by perm to
+// the lane of their column (columns 0-7, present where pres is set: a chunk's columns are
+// distinct, 8 < n) and added there, and those of columns 8 and beyond (extra lanes, all in the
+// chunk's first row) go to their own partials: every partial gets its pixels in row-major order,
+// as on the row walk, so the sums are the same bits.
+struct VisFlatPlan {
+  static constexpr int kMaxChunks = 28;  // 15 * 15 / 8
+  int n = 0, nvec = 0;
+  int64_t p0[kMaxChunks], p1[kMaxChunks];  // offsets from the window's first pixel
+  alignas(32) int32_t col[kMaxChunks][8], row[kMaxChunks][8], perm[kMaxChunks][8], pres[kMaxChunks][8],
+      hi[kMaxChunks][8];
+  int nextra[kMaxChunks], extra[kMaxChunks][8];  // lanes in columns >= 8
+
+  // Whether the chunked walk applies to windows of half size w (and builds it for image width W).
+  bool build(int64_t w, int64_t W) {
+    n = (int)(2 * w + 1);
+    if (n < 9 || n > 15) return false;
+    nvec = n * n / 8;
+    for (int c = 0; c < nvec; ++c) {
+      int split = 8;
+      for (int l = 0; l < 8; ++l) {
+        const int f = 8 * c + l;
+        row[c][l] = f / n;
+        col[c][l] = f % n;
+        if (split == 8 && row[c][l] != row[c][0]) split = l;
+        hi[c][l] = split < 8 ? -1 : 0;
+      }
+      p0[c] = (int64_t)row[c][0] * W + col[c][0];
+      p1[c] = split < 8 ? (int64_t)(row[c][0] + 1) * W - split : p0[c];
+      nextra[c] = 0;
+      for (int k = 0; k < 8; ++k) perm[c][k] = 0, pres[c][k] = 0;
+      for (int l = 0; l < 8; ++l) {
+        if (col[c][l] < 8) {
+          perm[c][col[c][l]] = l;
+          pres[c][col[c][l]] = -1;
+        } else {
+          extra[c][nextra[c]++] = l;
+        }
+      }
+    }
+    return true;
+  }
+};
+
+// The chunked walk of an interior window (every pixel on the image) by plan F: the same
+// evaluations and partial sums as the row walk in window_dss_avx2.
+template <int64_t KC, int64_t CC>
+DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, KC, CC>& rec, int64_t Krt,
+                               int64_t Crt, const VisPoint& P, const VisConsts& Q, const VisFlatPlan& F, int64_t W,
+                               int64_t window, int ic, int jc, __m256d* sx, __m256d* sy, __m256d* sz,
+                               double (*part)[3]) {
+  const int64_t corner = (int64_t)(ic - window) * W + (jc - window);
+  const __m256i vj0 = _mm256_set1_epi32(jc - (int)window), vi0 = _mm256_set1_epi32(ic - (int)window);
+  const __m256 half = _mm256_set1_ps(0.5f);
+  VisSplitAddr a;
+  a.oki = _mm256_set1_epi32(-1);
+  VisChunkOut o;
+  for (int c = 0; c < F.nvec; ++c) {
+    a.p0 = corner + F.p0[c];
+    a.p1 = corner + F.p1[c];
+    a.hi = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.hi[c]));
+    const __m256 px = _mm256_add_ps(
+        _mm256_cvtepi32_ps(_mm256_add_epi32(vj0, _mm256_load_si256((const __m256i*)F.col[c]))), half);
+    const __m256 py = _mm256_add_ps(
+        _mm256_cvtepi32_ps(_mm256_add_epi32(vi0, _mm256_load_si256((const __m256i*)F.row[c]))), half);
+    L.eval(a, px, py, o);
+    if (!o.any) continue;
+    const __m256i pm = _mm256_load_si256((const __m256i*)F.perm[c]);
+    const __m256 pr = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.pres[c]));
+    add_lanes(sx[0], sx[1], _mm256_and_ps(_mm256_permutevar8x32_ps(o.x1, pm), pr));
+    add_lanes(sy[0], sy[1], _mm256_and_ps(_mm256_permutevar8x32_ps(o.y1, pm), pr));
+    add_lanes(sx[0], sx[1], _mm256_and_ps(_mm256_permutevar8x32_ps(o.x2, pm), pr));
+    add_lanes(sy[0], sy[1], _mm256_and_ps(_mm256_permutevar8x32_ps(o.y2, pm), pr));
+    add_lanes(sz[0], sz[1], _mm256_and_ps(_mm256_permutevar8x32_ps(o.z, pm), pr));
+    if (F.nextra[c]) {
+      alignas(32) float x1[8], y1[8], x2[8], y2[8], z[8];
+      _mm256_store_ps(x1, o.x1), _mm256_store_ps(y1, o.y1), _mm256_store_ps(x2, o.x2);
+      _mm256_store_ps(y2, o.y2), _mm256_store_ps(z, o.z);
+      for (int e = 0; e < F.nextra[c]; ++e) {  // eval_scalar's order: (x1, y1), then (x2, y2, z)
+        const int l = F.extra[c][e];
+        double* q = part[F.col[c][l]];
+        q[0] += x1[l];
+        q[1] += y1[l];
+        q[0] += x2[l];
+        q[1] += y2[l];
+        q[2] += z[l];
+      }
+    }
+  }
+  // the window's last pixel alone
+  const int64_t p = corner + (int64_t)(F.n - 1) * W + (F.n - 1);
+  if (rec.nz(p) != 0.f)
+    eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)(jc + window) + 0.5f, (float)(ic + window) + 0.5f,
+                        part[F.n - 1]);
+}
+
 template <int64_t KC, int64_t CC>
 DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
-                              int64_t H, int64_t W, int64_t window, int ic, int jc, double acc[3]) {
+                              int64_t H, int64_t W, int64_t window, int ic, int jc, const VisFlatPlan* flat,
+                              double acc[3]) {
   VisLanes<KC, CC> L;
   L.init(rec, Krt, Crt, P, Q);
   const int mw = dss_splat::vis_window_runs(window);  // a row's first mw pixels in runs of 8
@@ -978,30 +1090,35 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
   // partials 0-7 in lanes (x, y, z; lanes 0-3 and 4-7), the rest (columns mw, mw + 1, ...) scalar
   __m256d sx[2] = {_mm256_setzero_pd(), _mm256_setzero_pd()}, sy[2] = {sx[0], sx[0]}, sz[2] = {sx[0], sx[0]};
   double part[dss_splat::kVisPartials][3] = {};
-  for (int64_t i = ic - window; i <= ic + window; ++i) {
-    if (i < 0 || i >= H) continue;
-    const float py = (float)i + 0.5f;
-    for (int64_t j0 = jc - window; j0 < jc - window + mw; j0 += 8) {
-      if (j0 + 7 < 0 || j0 >= W) continue;
-      const __m256i vj = _mm256_add_epi32(_mm256_set1_epi32((int)j0), lane);
-      VisAddr a;
-      a.masked = !(j0 >= 0 && j0 + 8 <= W);
-      a.p0 = i * W + j0;
-      a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
-      L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
-      if (o.any) {
-        add_lanes(sx[0], sx[1], o.x1);
-        add_lanes(sy[0], sy[1], o.y1);
-        add_lanes(sx[0], sx[1], o.x2);
-        add_lanes(sy[0], sy[1], o.y2);
-        add_lanes(sz[0], sz[1], o.z);
+  // interior windows of 9 to 15 columns in chunks across rows; the others row by row
+  if (flat && ic - window >= 0 && ic + window < H && jc - window >= 0 && jc + window < W) {
+    window_flat_avx2<KC, CC>(L, rec, Krt, Crt, P, Q, *flat, W, window, ic, jc, sx, sy, sz, part);
+  } else {
+    for (int64_t i = ic - window; i <= ic + window; ++i) {
+      if (i < 0 || i >= H) continue;
+      const float py = (float)i + 0.5f;
+      for (int64_t j0 = jc - window; j0 < jc - window + mw; j0 += 8) {
+        if (j0 + 7 < 0 || j0 >= W) continue;
+        const __m256i vj = _mm256_add_epi32(_mm256_set1_epi32((int)j0), lane);
+        VisAddr a;
+        a.masked = !(j0 >= 0 && j0 + 8 <= W);
+        a.p0 = i * W + j0;
+        a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
+        L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
+        if (o.any) {
+          add_lanes(sx[0], sx[1], o.x1);
+          add_lanes(sy[0], sy[1], o.y1);
+          add_lanes(sx[0], sx[1], o.x2);
+          add_lanes(sy[0], sy[1], o.y2);
+          add_lanes(sz[0], sz[1], o.z);
+        }
       }
-    }
-    // the row's last 2 w + 1 - mw pixels one at a time (a vector with one lane in use costs 3 scalar ones)
-    for (int64_t j = std::max<int64_t>(jc - window + mw, 0); j <= std::min<int64_t>(jc + window, W - 1); ++j) {
-      const int64_t p = i * W + j;
-      if (rec.nz(p) == 0.f) continue;
-      eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, part[8 + (j - (jc - window) - mw)]);
+      // the row's last 2 w + 1 - mw pixels one at a time (a vector with one lane in use costs 3 scalar ones)
+      for (int64_t j = std::max<int64_t>(jc - window + mw, 0); j <= std::min<int64_t>(jc + window, W - 1); ++j) {
+        const int64_t p = i * W + j;
+        if (rec.nz(p) == 0.f) continue;
+        eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)j + 0.5f, py, part[8 + (j - (jc - window) - mw)]);
+      }
     }
   }
   alignas(32) double lanes[3][8];
@@ -1067,6 +1184,10 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const int64_t Krt = K, Crt = C;  // run-time values; the evaluation loop may fix them at compile time
   const int64_t kChunk = 64;
   const float inf = std::numeric_limits<float>::infinity();
+#ifdef DSS_HAVE_AVX2
+  VisFlatPlan flat_plan;
+  const VisFlatPlan* flat = vec && flat_plan.build(window, W) ? &flat_plan : nullptr;
+#endif
   static thread_local std::vector<float> rec_f;
   static thread_local std::vector<int32_t> rec_i;
   auto run = [&](auto layout) {
@@ -1164,7 +1285,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 #ifdef DSS_HAVE_AVX2
           if constexpr (kSoA) {
             if (vec) {
-              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, acc);
+              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, acc);
               done = true;
             }
           }
@@ -1798,7 +1919,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("tangent_planes_forward", &tangent_planes_forward, "inverse-depth tangent planes (V,N,3) (CPU)");
   m.def("morton_order", &morton_order, "stable Z-order permutation of (N, 3) float32 points (CPU)");
   m.def("smape_sum", &smape_sum, "SMAPE sum and its derivative in one pass (CPU)");
-  m.def("pooled_clone", &pooled_clone, "contiguous copy in a reused output block");
   m.def("empty_cache", &empty_cache, "free the parked output blocks; returns the bytes released");
   m.def("blend_backward", &blend_backward, "DSS smooth-term backward of the normalised sum (CPU)");
   m.def("sun_shade_forward", &sun_shade_forward, "sun-light shading (V,N,3) of (N,3) normals (CPU)");
