@@ -991,6 +991,7 @@ struct VisFlatPlan {
   alignas(32) int32_t col[kMaxChunks][8], row[kMaxChunks][8], perm[kMaxChunks][8], pres[kMaxChunks][8],
       hi[kMaxChunks][8];
   int nextra[kMaxChunks], extra[kMaxChunks][8];  // lanes in columns >= 8
+  bool split[kMaxChunks];  // the chunk runs over a row end
 
   // Whether the chunked walk applies to windows of half size w (and builds it for image width W).
   bool build(int64_t w, int64_t W) {
@@ -1008,6 +1009,7 @@ struct VisFlatPlan {
       }
       p0[c] = (int64_t)row[c][0] * W + col[c][0];
       p1[c] = split < 8 ? (int64_t)(row[c][0] + 1) * W - split : p0[c];
+      this->split[c] = split < 8;
       nextra[c] = 0;
       for (int k = 0; k < 8; ++k) perm[c][k] = 0, pres[c][k] = 0;
       for (int l = 0; l < 8; ++l) {
@@ -1035,16 +1037,24 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
   const __m256 half = _mm256_set1_ps(0.5f);
   VisSplitAddr a;
   a.oki = _mm256_set1_epi32(-1);
+  VisAddr row;  // chunks within one row
+  row.masked = false;
+  row.oki = a.oki;
   VisChunkOut o;
   for (int c = 0; c < F.nvec; ++c) {
-    a.p0 = corner + F.p0[c];
-    a.p1 = corner + F.p1[c];
-    a.hi = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.hi[c]));
     const __m256 px = _mm256_add_ps(
         _mm256_cvtepi32_ps(_mm256_add_epi32(vj0, _mm256_load_si256((const __m256i*)F.col[c]))), half);
     const __m256 py = _mm256_add_ps(
         _mm256_cvtepi32_ps(_mm256_add_epi32(vi0, _mm256_load_si256((const __m256i*)F.row[c]))), half);
-    L.eval(a, px, py, o);
+    if (F.split[c]) {
+      a.p0 = corner + F.p0[c];
+      a.p1 = corner + F.p1[c];
+      a.hi = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.hi[c]));
+      L.eval(a, px, py, o);
+    } else {
+      row.p0 = corner + F.p0[c];
+      L.eval(row, px, py, o);
+    }
     if (!o.any) continue;
     const __m256i pm = _mm256_load_si256((const __m256i*)F.perm[c]);
     const __m256 pr = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.pres[c]));
