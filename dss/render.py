@@ -107,7 +107,8 @@ class RenderOutput:
     """Result of :func:`render`.
 
     Attributes:
-        images: (V, H, W, C) float32.
+        images: (V, H, W, C) float32. When it carries a gradient on the ``cpp`` and ``cuda``
+            backends, the backward reads it: autograd refuses an in-place edit (clone it first).
         mask: (V, H, W) bool, pixels where a splat is visible.
         fragments: the per-pixel top-K cache (index, weight, depth); indices in the caller's order.
         splats: the screen-space splats (packed (V, N, 10)), in the caller's point order.

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from experiments.bench_common import REPO, main_for, write_result
+from experiments.bench_common import REPO, git_short, main_for, write_result
 from experiments.figures import command_line
 
 SOURCE = "dss/csrc/dss_cpu.cpp"
@@ -167,7 +167,9 @@ def run(argv=None) -> dict:
                 times[k].append(1e3 * (time.perf_counter() - t0))
                 del out
     med = {k: statistics.median(v[args.skip:]) for k, v in times.items()}
-    result = {"kernel": args.kernel, "base": args.base, "kind": args.kind, "points": args.points,
+    result = {"kernel": args.kernel, "base": args.base,
+              "base_commit": None if args.base == "scalar" else git_short(args.base),  # "HEAD" resolved
+              "kind": args.kind, "points": args.points,
               "window": call_args[VIS_WINDOW_ARG] if args.kernel == "visibility_backward" else None,
               "views": args.views, "image_size": args.image_size, "threads": args.threads,
               "median_ms": med, "speedup": med["base"] / med["work"], "runs_ms": times,
