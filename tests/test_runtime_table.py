@@ -184,6 +184,20 @@ def test_ab_steps_child_times_one_kind_of_step(cpp_backend):
         ab_steps.run(["--rounds", "2"])  # no --base
 
 
+def test_ab_step_overheads_puts_each_earlier_version_back_only_for_its_steps(cpp_backend):
+    """experiments.ab_step_overheads times every variant and leaves the current code in place."""
+    import dss.render as R
+    from experiments import ab_step_overheads
+
+    before = (R._KernelBlend.forward, R._PermuteRows.forward, R._PermuteRows.backward, R.all_finite, R.SunLights)
+    r = ab_step_overheads.measure("position", rounds=1, n_points=3000, views=2, size=32)
+    assert set(r) == {"current", "copy", "fancy_index", "isfinite", "lights"}
+    assert all(v["forward_ms"] > 0 and v["backward_ms"] > 0 for v in r.values())
+    assert r["current"]["saved_ms_by_current"] == 0
+    assert (R._KernelBlend.forward, R._PermuteRows.forward, R._PermuteRows.backward, R.all_finite,
+            R.SunLights) == before
+
+
 @pytest.mark.slow
 def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
     """experiments.ab_steps checks HEAD out into a worktree, runs both versions' steps in child
