@@ -145,7 +145,8 @@ def run(argv=None) -> dict:
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    result = {"command": command_line("python -m experiments.ab_step_overheads", argv), "threads": args.threads, "rounds": args.rounds, "kinds": {}}
+    result = {"command": command_line("python -m experiments.ab_step_overheads", argv), "threads": args.threads,
+              "rounds": args.rounds, "kinds": {}}
     for kind in args.kinds:
         r = result["kinds"][kind] = measure(kind, args.rounds)
         for name, v in r.items():

@@ -1037,9 +1037,9 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
   const __m256 half = _mm256_set1_ps(0.5f);
   VisSplitAddr a;
   a.oki = _mm256_set1_epi32(-1);
-  VisAddr row;  // chunks within one row
-  row.masked = false;
-  row.oki = a.oki;
+  VisAddr in_row;  // chunks within one row: one load per plane
+  in_row.masked = false;
+  in_row.oki = a.oki;
   VisChunkOut o;
   for (int c = 0; c < F.nvec; ++c) {
     const __m256 px = _mm256_add_ps(
@@ -1052,8 +1052,8 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
       a.hi = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.hi[c]));
       L.eval(a, px, py, o);
     } else {
-      row.p0 = corner + F.p0[c];
-      L.eval(row, px, py, o);
+      in_row.p0 = corner + F.p0[c];
+      L.eval(in_row, px, py, o);
     }
     if (!o.any) continue;
     const __m256i pm = _mm256_load_si256((const __m256i*)F.perm[c]);
