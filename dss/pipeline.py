@@ -25,6 +25,7 @@ import torch
 
 from .cameras import Cameras
 from .optimize import MultiViewOptimizer, OptimizationResult, OptimizerConfig
+from .pointcloud import all_finite
 from .render import RenderSettings, render
 from .splats import auto_sigma
 
@@ -117,7 +118,7 @@ class ReferenceRenderer:
                 f"image_fn returned shape {tuple(ref.shape)} for renders of shape {tuple(images.shape)} "
                 "(it must map (V, H, W, C) to the same shape)"
             )
-        if not torch.isfinite(ref).all():
+        if not all_finite(ref):
             raise ReferenceImageError("image_fn returned NaN/inf values")
         if self.keep_background:
             ref = torch.where(mask[..., None], ref, images)
@@ -170,7 +171,7 @@ def refine_with_reference(
     """
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {tuple(points.shape)} and {tuple(normals.shape)}")
-    if not (torch.isfinite(points).all() and torch.isfinite(normals).all()):
+    if not all_finite(points, normals):
         raise ValueError("points or normals contain NaN/inf rows; drop them first (dss.pointcloud.finite_rows)")
     config = config or OptimizerConfig(cycles=16, normal_steps=19, point_steps=1)
     settings = settings or RenderSettings()

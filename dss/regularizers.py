@@ -86,6 +86,7 @@ from torch.autograd.function import once_differentiable
 
 from dss._ext import build_error, load_cpu
 from dss.knn import Neighbors, gather_neighbors, knn
+from dss.pointcloud import all_finite
 
 logger = logging.getLogger(__name__)
 
@@ -380,7 +381,7 @@ def _check_inputs(points, normals, occlusion):
         shape = tuple(points.shape) if isinstance(points, torch.Tensor) else type(points).__name__
         raise ValueError(f"points must be a (N, 3) tensor, got {shape}")
     n = points.shape[0]
-    if not bool(torch.isfinite(points).all()):
+    if not all_finite(points):
         raise ValueError("points contain NaN or inf coordinates")
     if normals is not None and tuple(normals.shape) != (n, 3):
         raise ValueError(f"normals must have shape ({n}, 3), got {tuple(normals.shape)}")
