@@ -168,8 +168,8 @@ class EmulatedKernels:
         P, I64, I, F = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_float
         self.lib = ctypes.CDLL(str(lib_path))
         sig = {
-            "emu_bin_count": [P, I64, I64, I, I, P],
-            "emu_bin_fill": [P, I64, I64, I, I, P, P],
+            "emu_bin_count": [P, I64, I64, I, I, F, P],
+            "emu_bin_fill": [P, I64, I64, I, I, F, P, P],
             "emu_rasterize_tiles": [P, I64, I64, I, I, I, P, P, P, F, F, P, I, P, P, P, P, P, P],
             "emu_visibility": [P] * 12 + [I64, I64, I, I, I, I, I, I, F, F, F, I, P],
             "emu_reduce_views": [P, P, I64, I64, P],
@@ -202,12 +202,12 @@ class EmulatedKernels:
         bg = background.float().contiguous() if do_blend else None
         VT = V * ((H + TILE - 1) // TILE) * ((W + TILE - 1) // TILE)
         counts = torch.zeros(VT, dtype=torch.int32)
-        self._check(self.lib.emu_bin_count(p(packed), V, N, H, W, p(counts)), "bin_count")
+        self._check(self.lib.emu_bin_count(p(packed), V, N, H, W, cutoff, p(counts)), "bin_count")
         bin_end = torch.cumsum(counts, 0, dtype=torch.int64)
         bin_start = bin_end - counts
         cursor = bin_start.clone()
         lst = torch.empty(max(int(bin_end[-1]) if VT else 0, 1), dtype=torch.int32)
-        self._check(self.lib.emu_bin_fill(p(packed), V, N, H, W, p(cursor), p(lst)), "bin_fill")
+        self._check(self.lib.emu_bin_fill(p(packed), V, N, H, W, cutoff, p(cursor), p(lst)), "bin_fill")
         assert torch.equal(cursor, bin_end), "every bin must be filled exactly"
         idx = torch.empty(V, H, W, K, dtype=torch.int32)
         depth = torch.empty(V, H, W, K)

@@ -333,3 +333,77 @@ def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
     assert K == 1 or dup_in_one_list  # a duplicate pair met in some list: the tie rule decided
     for name, a, b in zip(("idx", "depth", "rho", "images", "mask"), vec, scalar):
         assert torch.equal(a, b), f"{name} differs"
+
+
+def _quad32(conic, dx, dy):
+    """The kernels' q = a dx^2 + b2 dx dy + c dy^2, float32 operations in their order."""
+    return ((conic[0] * dx) * dx + (conic[1] * dx) * dy) + (conic[2] * dy) * dy
+
+
+def _splat_with_a_pixel_on_its_ellipse(rng, i: int, j: int, row_minimum: bool, two_c):
+    """A packed splat (10,) whose cutoff ellipse passes through the centre of pixel (i, j): its
+    conic is the largest float32 scaling whose q there is still <= 2 cutoff, and that pixel holds
+    the form's minimum over its row (row_minimum: the ellipse's top or bottom) or over its column
+    (its left or right end). Conics from round to strongly elongated (4ac / b2^2 down to 1.001);
+    a third of the boxes (rx, ry) are up to 60% loose, the rest exact."""
+    import numpy as np
+
+    f32 = np.float32
+    off = rng.uniform(0.3, 6.0, 2) * rng.choice([-1.0, 1.0], 2)
+    u, v = f32(j + 0.5 - off[0]), f32(i + 0.5 - off[1])
+    dx, dy = (f32(j) + f32(0.5)) - u, (f32(i) + f32(0.5)) - v
+    ill = np.exp(rng.uniform(np.log(1e-3), np.log(3.0)))  # 4ac / b2^2 - 1: small is elongated
+    if row_minimum:  # b2 = -2 a dx / dy puts the row's minimum at dx
+        a = np.exp(rng.uniform(-3, 1))
+        b2 = -2 * a * float(dx) / float(dy)
+        c = b2 * b2 / (4 * a) * (1 + ill) + 1e-3
+    else:  # b2 = -2 c dy / dx puts the column's minimum at dy
+        c = np.exp(rng.uniform(-3, 1))
+        b2 = -2 * c * float(dy) / float(dx)
+        a = b2 * b2 / (4 * c) * (1 + ill) + 1e-3
+    conic = np.array([a, b2, c], np.float32)
+    lo, hi = 0.5 * two_c / _quad32(conic, dx, dy), 2.0 * two_c / _quad32(conic, dx, dy)
+    for _ in range(60):  # bisection on the scale
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _quad32((conic * mid).astype(np.float32), dx, dy) <= two_c else (lo, mid)
+    conic = (conic * lo).astype(np.float32)
+    a, b2, c = conic.astype(np.float64)
+    assert 4 * a * c - b2 * b2 > 0  # still positive definite after rounding
+    cov = np.linalg.inv(np.array([[a, b2 / 2], [b2 / 2, c]]))
+    loose = rng.uniform(1.0, 1.6) if rng.random() < 1 / 3 else 1.0
+    rx, ry = (np.sqrt(float(two_c) * np.diag(cov)) * loose * (1 + 1e-4)).astype(np.float32)
+    return np.array([u, v, *conic, rng.uniform(0.5, 2.0), rng.uniform(1.0, 3.0), rx, ry, 1.0], np.float32)
+
+
+@pytest.mark.parametrize("vector", [True, False])
+def test_tightened_boxes_keep_pixels_on_the_cutoff_ellipse(vector, cpp_backend):
+    """The C++ binning shrinks each splat's box to the rows and columns that can hold a pixel with
+    0.5 q <= cutoff (dss_cpu.cpp tighten_box: the form's minimum over a row or a column, with a
+    margin for quad()'s float32 rounding); the reference tests every pixel of the padded box. Each
+    splat has one pixel centre on its cutoff ellipse where the form is minimal over that pixel's
+    row or column (_splat_with_a_pixel_on_its_ellipse). The caches must be identical and hold most
+    of those pixels. Without the rounding margin (the kernel edited to f = 1), or with f = 1 +
+    1e-6, boundary rows are dropped and the caches differ."""
+    import numpy as np
+
+    from dss import _ext
+    from dss.splats import Splats
+
+    mod = _ext.load_cpu()
+    if vector and not mod.vector_path_available():
+        skip_without_vector_path()
+    rng = np.random.default_rng(7)
+    H, W, V, N, cutoff = 40, 56, 2, 300, 1.0
+    edge = [(v, k, int(rng.integers(0, H)), int(rng.integers(0, W))) for v in range(V) for k in range(N)]
+    packed = torch.from_numpy(np.stack([_splat_with_a_pixel_on_its_ellipse(rng, i, j, k % 2 == 1, np.float32(2 * cutoff))
+                                        for _, k, i, j in edge]).reshape(V, N, 10))
+    want = ref.rasterize(Splats(packed), (H, W), K=8, cutoff=cutoff)
+    before = mod.set_vector_path(vector)
+    try:
+        idx, depth, rho, _, _ = mod.rasterize_forward(packed, torch.empty(0), H, W, 8, cutoff, 0.0, torch.empty(0))
+    finally:
+        mod.set_vector_path(before)
+    assert torch.equal(idx, want.idx) and torch.equal(depth, want.depth)
+    torch.testing.assert_close(rho, want.rho, rtol=1e-6, atol=1e-7)
+    on_edge = sum(bool((want.idx[v, i, j] == k).any()) for v, k, i, j in edge)
+    assert on_edge > 0.5 * len(edge)  # most boundary pixels made it into their (8-deep) lists

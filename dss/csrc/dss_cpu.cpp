@@ -78,6 +78,12 @@ inline Box splat_box(const float* s, int H, int W) {
 
 inline float quad(const float* s, float dx, float dy) { return dss_splat::quad(s[2], s[3], s[4], dx, dy); }
 
+// splat_box() shrunk by the edge rows and columns that cannot hold a pixel passing the cutoff
+// test (dss_splat::tighten_box); false when none is left.
+inline bool tighten_box(const float* s, float cutoff, Box& b) {
+  return dss_splat::tighten_box(s, cutoff, b.j0, b.j1, b.i0, b.i1);
+}
+
 // Depth of point k's tangent plane at the pixel centre (px, py), the depth its splat would have
 // there (the backward pass's occlusion test, cases (a)/(b)). For a plane 1/z is affine in screen
 // space: 1/z = pl[0] px + pl[1] py + pl[2] (computed in dss/render.py; (0, 0, 1/z) reproduces
@@ -370,9 +376,10 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     float zlo = std::numeric_limits<float>::infinity(), zhi = -zlo;
     for (int64_t k = 0; k < N; ++k) {
       const float* s = P + (v * N + k) * kFields;
-      if (!(s[9] > 0.f)) continue;
-      const Box b = splat_box(s, (int)H, (int)W);
-      if (b.j1 < b.j0 || b.i1 < b.i0) continue;
+      // (a NaN centre or extent would make the box's integer conversions undefined)
+      if (!(s[9] > 0.f) || std::isnan(s[0] + s[1] + s[7] + s[8])) continue;
+      Box b = splat_box(s, (int)H, (int)W);
+      if (b.j1 < b.j0 || b.i1 < b.i0 || !tighten_box(s, cutoff, b)) continue;
       dr.push_back({{s[0], s[1], s[2], s[3], s[4], s[5], s[6], (int32_t)k, 0, 0, 0, 0}, b});
       zlo = std::min(zlo, s[6]);
       zhi = std::max(zhi, s[6]);

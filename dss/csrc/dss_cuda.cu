@@ -86,13 +86,13 @@ __device__ __forceinline__ bool before(float za, int ia, float zb, int ib) {
 }
 
 __global__ void bin_count_kernel(const float* __restrict__ P, int64_t V, int64_t N, int H, int W, int TX, int T,
-                                 int32_t* __restrict__ counts) {
+                                 float cutoff, int32_t* __restrict__ counts) {
   const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (item >= V * N) return;
   const float* s = P + item * kFields;
   if (!(s[9] > 0.f)) return;
-  const Box b = splat_box(s, H, W);
-  if (b.j1 < b.j0 || b.i1 < b.i0) return;
+  Box b = splat_box(s, H, W);
+  if (b.j1 < b.j0 || b.i1 < b.i0 || !dss_splat::tighten_box(s, cutoff, b.j0, b.j1, b.i0, b.i1)) return;
   const int64_t v = item / N;
   int32_t* c = counts + v * T;
   for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
@@ -100,13 +100,13 @@ __global__ void bin_count_kernel(const float* __restrict__ P, int64_t V, int64_t
 }
 
 __global__ void bin_fill_kernel(const float* __restrict__ P, int64_t V, int64_t N, int H, int W, int TX, int T,
-                                int64_t* __restrict__ cursor, int32_t* __restrict__ list) {
+                                float cutoff, int64_t* __restrict__ cursor, int32_t* __restrict__ list) {
   const int64_t item = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (item >= V * N) return;
   const float* s = P + item * kFields;
   if (!(s[9] > 0.f)) return;
-  const Box b = splat_box(s, H, W);
-  if (b.j1 < b.j0 || b.i1 < b.i0) return;
+  Box b = splat_box(s, H, W);
+  if (b.j1 < b.j0 || b.i1 < b.i0 || !dss_splat::tighten_box(s, cutoff, b.j0, b.j1, b.i0, b.i1)) return;
   const int64_t v = item / N;
   const int32_t k = (int32_t)(item - v * N);
   unsigned long long* cur = reinterpret_cast<unsigned long long*>(cursor + v * T);
@@ -157,7 +157,8 @@ __global__ void __launch_bounds__(kBlockPixels)
     if (tid < n) {
       const int k = list[base + tid];
       const float* s = Pv + (int64_t)k * kFields;
-      const Box b = splat_box(s, H, W);
+      Box b = splat_box(s, H, W);
+      dss_splat::tighten_box(s, cutoff, b.j0, b.j1, b.i0, b.i1);  // the box the binning used
       s_u[tid] = s[0];
       s_v[tid] = s[1];
       s_a[tid] = s[2];
@@ -621,21 +622,21 @@ inline int tiles_y(int H) { return (H + kTile - 1) / kTile; }
 
 // Launchers: qualified definitions, so a signature that drifts from dss_cuda.h fails to compile.
 
-cudaError_t dss_cuda::launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
-                                       cudaStream_t stream) {
+cudaError_t dss_cuda::launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, float cutoff,
+                                       int32_t* counts, cudaStream_t stream) {
   const int TX = tiles_x(W), T = TX * tiles_y(H);
   if (V * N == 0 || T == 0) return cudaSuccess;
   const unsigned int blocks = blocks_for(V * N, kThreads1D);
-  DSS_LAUNCH(bin_count_kernel, blocks, kThreads1D, stream)(packed, V, N, H, W, TX, T, counts);
+  DSS_LAUNCH(bin_count_kernel, blocks, kThreads1D, stream)(packed, V, N, H, W, TX, T, cutoff, counts);
   return cudaGetLastError();
 }
 
-cudaError_t dss_cuda::launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor,
-                                      int32_t* list, cudaStream_t stream) {
+cudaError_t dss_cuda::launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, float cutoff,
+                                      int64_t* cursor, int32_t* list, cudaStream_t stream) {
   const int TX = tiles_x(W), T = TX * tiles_y(H);
   if (V * N == 0 || T == 0) return cudaSuccess;
   const unsigned int blocks = blocks_for(V * N, kThreads1D);
-  DSS_LAUNCH(bin_fill_kernel, blocks, kThreads1D, stream)(packed, V, N, H, W, TX, T, cursor, list);
+  DSS_LAUNCH(bin_fill_kernel, blocks, kThreads1D, stream)(packed, V, N, H, W, TX, T, cutoff, cursor, list);
   return cudaGetLastError();
 }
 

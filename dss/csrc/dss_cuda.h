@@ -46,15 +46,16 @@ cudaError_t launch_sun_backward(const float* normals, const float* albedo, const
                                 int64_t V, int64_t N, float ambient, float* grad_normals, float* grad_albedo,
                                 cudaStream_t stream);
 
-// Binning pass 1: counts[v * T + t] += 1 for every tile t touched by the box of splat (v, k).
+// Binning pass 1: counts[v * T + t] += 1 for every tile t touched by the box of splat (v, k)
+// (splat_box() shrunk by dss_splat::tighten_box for the cutoff, as the CPU kernel bins).
 // counts (V * T) i32 must be zeroed; T = ceil(H / kTile) * ceil(W / kTile).
-cudaError_t launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts,
+cudaError_t launch_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, float cutoff, int32_t* counts,
                              cudaStream_t stream);
 
 // Binning pass 2: list[cursor[v * T + t]++] = k. cursor (V * T) i64 starts as the exclusive
 // prefix sum of counts; list holds sum(counts) entries. The order inside a bin does not matter:
 // the per-pixel top-K is a strict (depth, index) order, so the result is order-independent.
-cudaError_t launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor,
+cudaError_t launch_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, float cutoff, int64_t* cursor,
                             int32_t* list, cudaStream_t stream);
 
 // One block per (view, tile), one thread per pixel: top-K insertion over the tile's bin, then the

@@ -75,13 +75,14 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
 
   // Tile binning: count, exclusive scan, fill.
   auto counts = torch::zeros({VT}, opt_i32);
-  check_launch(dss_cuda::launch_bin_count(P, V, N, (int)H, (int)W, counts.data_ptr<int32_t>(), stream), "bin_count");
+  check_launch(dss_cuda::launch_bin_count(P, V, N, (int)H, (int)W, (float)cutoff_d, counts.data_ptr<int32_t>(), stream),
+               "bin_count");
   auto bin_end = torch::cumsum(counts, 0, torch::kInt64);
   auto bin_start = bin_end - counts;
   const int64_t total = VT > 0 ? bin_end[VT - 1].item<int64_t>() : 0;  // synchronises: sizes the bins
   auto cursor = bin_start.clone();
   auto list = torch::empty({std::max<int64_t>(total, 1)}, opt_i32);
-  check_launch(dss_cuda::launch_bin_fill(P, V, N, (int)H, (int)W, cursor.data_ptr<int64_t>(),
+  check_launch(dss_cuda::launch_bin_fill(P, V, N, (int)H, (int)W, (float)cutoff_d, cursor.data_ptr<int64_t>(),
                                          list.data_ptr<int32_t>(), stream),
                "bin_fill");
 

@@ -222,4 +222,39 @@ DSS_SPLAT_FN int vis_window_runs(int64_t window) { return (int)((2 * window + 1)
 DSS_SPLAT_FN int vis_partial_count(int64_t window) { return 8 + (int)(2 * window + 1) - vis_window_runs(window); }
 DSS_SPLAT_FN int vis_partial(int64_t c, int mw) { return c < mw ? (int)(c & 7) : 8 + (int)(c - mw); }
 
+// Shrinks a splat's pixel box [j0, j1] x [i0, i1] (the reference's bbox(), one to two rows and
+// columns of margin on each side) by the rows and columns at its edges that cannot hold a pixel
+// passing the cutoff test (0.5 q <= cutoff, q = quad() in float32 at pixel centres): the bins
+// reach fewer tiles and the tile loops test fewer rows, while only pixels that must fail leave
+// the box, so the caches keep their bits.
+// - Over a row (pixel-centre offset dy from the centre, in float as the tile loops compute it) the
+//   form is at least dy^2 D / (4a), D = 4ac - b2^2; over a column, dx^2 D / (4c).
+// - quad()'s float result is within 4 eps S of the exact form (eps = 2^-24; at most four roundings
+//   per term), S = |t1| + |t2| + |t3| <= kappa q with kappa = (1 + r) / (1 - r) <= 16 ac / D,
+//   r = |b2| / (2 sqrt(ac)). So a row with dy^2 (D - 128 eps ac) > 4a * 2 cutoff has no pixel with
+//   0.5 q <= cutoff (halving is exact); tested in double, without a division.
+// - Each edge steps over at most two rejected rows or columns, without a branch on the data (on
+//   the CPU, loops that run to the first accepted row mispredict their exits).
+// Forms that are not clearly positive definite or too ill-conditioned for the margin keep their
+// box. Returns false when no row or column is left.
+DSS_SPLAT_FN int line_out(int line, float centre, double g, double lim) {
+  const double d = ((float)line + 0.5f) - centre;
+  return d * d * g > lim ? 1 : 0;
+}
+
+DSS_SPLAT_FN bool tighten_box(const float* s, float cutoff, int& j0, int& j1, int& i0, int& i1) {
+  const double a = s[2], b2 = s[3], c = s[4], two_cut = 2.0 * (double)cutoff;
+  if (!(a > 1e-30 && c > 1e-30 && a < 1e30 && c < 1e30 && fabs(b2) < 1e30 && two_cut > 0.0)) return true;
+  const double det4 = 4.0 * a * c - b2 * b2, g = det4 - 128.0 * 5.9604644775390625e-8 * a * c;
+  if (!(g > 0.5 * det4)) return true;
+  const double lim_row = 4.0 * a * two_cut, lim_col = 4.0 * c * two_cut;
+  for (int step = 0; step < 2; ++step) {
+    i0 += line_out(i0, s[1], g, lim_row);
+    i1 -= line_out(i1, s[1], g, lim_row);
+    j0 += line_out(j0, s[0], g, lim_col);
+    j1 -= line_out(j1, s[0], g, lim_col);
+  }
+  return i0 <= i1 && j0 <= j1;
+}
+
 }  // namespace dss_splat

@@ -6,12 +6,13 @@
 
 extern "C" {
 
-int emu_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, int32_t* counts) {
-  return dss_cuda::launch_bin_count(packed, V, N, H, W, counts, nullptr);
+int emu_bin_count(const float* packed, int64_t V, int64_t N, int H, int W, float cutoff, int32_t* counts) {
+  return dss_cuda::launch_bin_count(packed, V, N, H, W, cutoff, counts, nullptr);
 }
 
-int emu_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, int64_t* cursor, int32_t* list) {
-  return dss_cuda::launch_bin_fill(packed, V, N, H, W, cursor, list, nullptr);
+int emu_bin_fill(const float* packed, int64_t V, int64_t N, int H, int W, float cutoff, int64_t* cursor,
+                 int32_t* list) {
+  return dss_cuda::launch_bin_fill(packed, V, N, H, W, cutoff, cursor, list, nullptr);
 }
 
 int emu_rasterize_tiles(const float* packed, int64_t V, int64_t N, int H, int W, int K, const int64_t* bin_start,
