@@ -286,3 +286,38 @@ def test_ab_denoise_alternates_versions_and_reads_the_jobs_wall_time(monkeypatch
     assert res["speedup"] == pytest.approx(33.0 / 14.0)
     assert res["runs"]["work"][0]["chamfer_x1e4"]["paper"] == {"input": 1.467, "denoised": 0.326}
     assert (tmp_path / "r.json").exists()
+
+
+def test_tight_boxes_hold_every_passing_pixel_and_are_smaller():
+    """perf_counts.tight_bbox (the kernels' box shrinking, for counting): on a projected random
+    scene every pixel of the reference box that passes the cutoff test (q in float32, in the
+    kernels' order) lies in the tightened box, the tightened boxes are inside the reference ones,
+    and they hold fewer tile rows and pixels (box_counts)."""
+    from scenes import random_scene
+
+    from dss.rasterizer.reference import bbox, splat_weight
+    from dss.splats import project_splats
+    from experiments import perf_counts
+
+    pts, nrm, cams, sigma, _ = random_scene(5, n=400, views=2, size=(40, 56))
+    pk = project_splats(pts, nrm, cams, sigma * 2, 1.0).packed.float()
+    H, W = cams.image_size
+    ref_box = bbox(pk, H, W)
+    tight = perf_counts.tight_bbox(pk, H, W, 1.0)
+    valid = pk[..., 9] > 0
+    passing = 0
+    for v, k in torch.nonzero(valid).tolist():
+        j0, j1, i0, i1 = (int(b[v, k]) for b in ref_box)
+        ii, jj = torch.meshgrid(torch.arange(i0, i1 + 1), torch.arange(j0, j1 + 1), indexing="ij")
+        q, _ = splat_weight(pk[v, k].expand(ii.numel(), -1), jj.flatten().float() + 0.5, ii.flatten().float() + 0.5)
+        keep = 0.5 * q <= 1.0
+        tj0, tj1, ti0, ti1 = (int(b[v, k]) for b in tight)
+        assert j0 <= tj0 and tj1 <= j1 and i0 <= ti0 and ti1 <= i1
+        ik, jk = ii.flatten()[keep], jj.flatten()[keep]
+        assert ((ik >= ti0) & (ik <= ti1) & (jk >= tj0) & (jk <= tj1)).all(), (v, k)
+        passing += int(keep.sum())
+    assert passing > 1000
+    c = perf_counts.box_counts(pk, H, W, 1.0)
+    assert c["tight"]["tile_rows"] < 0.8 * c["bbox"]["tile_rows"]
+    assert c["tight"]["pixel_tests"] < 0.8 * c["bbox"]["pixel_tests"]
+    assert c["tight"]["tile_entries"] <= c["bbox"]["tile_entries"]
