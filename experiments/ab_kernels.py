@@ -39,11 +39,9 @@ def capture_inputs(kind: str, n_points: int, views: int, size: int) -> dict:
     """The arguments of every C++ kernel call of one optimisation step (the last call of each)."""
     from dss import _ext
     from dss.losses import smape_loss
-    from dss.render import RenderSettings, render
-    from dss.splats import auto_sigma
-    from dss.views import SphereViewSampler
+    from dss.render import render
     from experiments.bench_render import benchmark_cloud
-    from experiments.runtime_table import FOV_DEG, JITTER, POSITION_WINDOW, TARGET_NOISE
+    from experiments.runtime_table import step_scene
 
     mod = _ext.load_cpu()
     if mod is None:
@@ -61,11 +59,8 @@ def capture_inputs(kind: str, n_points: int, views: int, size: int) -> dict:
             return call
 
     pts, nrm, _ = benchmark_cloud(n_points)
-    settings = RenderSettings(window=POSITION_WINDOW)
-    cams = SphereViewSampler((0.0, 0.0, 0.0), float(pts.norm(dim=1).max()), views=views, image_size=size,
-                             fov_deg=FOV_DEG, jitter=JITTER, seed=0).sample()
-    sigma = auto_sigma(pts)
-    target_pts = pts + TARGET_NOISE * torch.randn(pts.shape, generator=torch.Generator().manual_seed(1))
+    sc = step_scene(pts, views, size)
+    settings, cams, sigma, target_pts = sc.settings, sc.sampler.sample(), sc.sigma, sc.target_points
     original = _ext.load_cpu
     _ext.load_cpu = lambda: Recorder()
     try:

@@ -89,18 +89,13 @@ def _variants():
 def measure(kind: str, rounds: int, n_points: int = 20000, views: int = 12, size: int = 256) -> dict:
     """Median forward / backward ms of each variant, the variants alternating step by step."""
     from dss.losses import smape_loss
-    from dss.render import RenderSettings, render
-    from dss.splats import auto_sigma
-    from dss.views import SphereViewSampler
+    from dss.render import render
     from experiments.bench_render import benchmark_cloud
-    from experiments.runtime_table import FOV_DEG, JITTER, POSITION_WINDOW, TARGET_NOISE
+    from experiments.runtime_table import step_scene
 
     pts, nrm, _ = benchmark_cloud(n_points)
-    settings = RenderSettings(window=POSITION_WINDOW)
-    sampler = SphereViewSampler((0.0, 0.0, 0.0), float(pts.norm(dim=1).max()), views=views, image_size=size,
-                                fov_deg=FOV_DEG, jitter=JITTER, seed=0)
-    target_pts = pts + TARGET_NOISE * torch.randn(pts.shape, generator=torch.Generator().manual_seed(1))
-    sigma = auto_sigma(pts)
+    sc = step_scene(pts, views, size)
+    settings, sampler, target_pts, sigma = sc.settings, sc.sampler, sc.target_points, sc.sigma
     p = pts.clone().requires_grad_(kind == "position")
     n = nrm.clone().requires_grad_(kind == "normal")
     scenes = []

@@ -179,6 +179,28 @@ def _sync(device: torch.device):
         torch.cuda.synchronize(device)
 
 
+@dataclass
+class StepScene:
+    """What every timed step shares: the render settings (visibility window 4), the camera
+    sampler (new views each step), the target cloud (moved by TARGET_NOISE) and sigma."""
+
+    settings: RenderSettings
+    sampler: SphereViewSampler
+    target_points: torch.Tensor
+    sigma: torch.Tensor
+
+
+def step_scene(points: torch.Tensor, views: int, image_size: int, seed: int = 0) -> StepScene:
+    """The scene of ``time_steps`` (and of the A/B tools that time or capture the same steps)
+    for an (N, 3) cloud on its device; sigma is set once per run, as the optimiser does."""
+    radius = float(points.norm(dim=1).max())
+    sampler = SphereViewSampler((0.0, 0.0, 0.0), radius, views=views, image_size=image_size, fov_deg=FOV_DEG,
+                                jitter=JITTER, seed=seed)
+    gen = torch.Generator().manual_seed(seed + 1)
+    noise = (TARGET_NOISE * torch.randn(points.shape, generator=gen)).to(points.device)
+    return StepScene(RenderSettings(window=POSITION_WINDOW), sampler, points + noise, auto_sigma(points))
+
+
 def time_steps(points: torch.Tensor, normals: torch.Tensor, backend: str, kind: str, views: int,
                image_size: int, warmup: int, measure: int, seed: int = 0, progress: bool = True) -> dict:
     """Run ``warmup + measure`` optimisation steps of one kind; median forward / backward times.
@@ -193,14 +215,8 @@ def time_steps(points: torch.Tensor, normals: torch.Tensor, backend: str, kind: 
     from tqdm.auto import tqdm
 
     dev = points.device
-    settings = RenderSettings(window=POSITION_WINDOW)
-    radius = float(points.norm(dim=1).max())
-    sampler = SphereViewSampler((0.0, 0.0, 0.0), radius, views=views, image_size=image_size, fov_deg=FOV_DEG,
-                                jitter=JITTER, seed=seed)
-    gen = torch.Generator().manual_seed(seed + 1)
-    noise = (TARGET_NOISE * torch.randn(points.shape, generator=gen)).to(dev)
-    target_points = points + noise
-    sigma = auto_sigma(points)  # set once per run, as the optimiser does; not part of a step
+    sc = step_scene(points, views, image_size, seed)
+    settings, sampler, target_points, sigma = sc.settings, sc.sampler, sc.target_points, sc.sigma
     p = points.detach().clone().requires_grad_(kind == "position")
     n = normals.detach().clone().requires_grad_(kind == "normal")
     param = p if kind == "position" else n
