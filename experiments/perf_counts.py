@@ -233,7 +233,8 @@ def tight_bbox(packed: torch.Tensor, H: int, W: int, cutoff: float):
 def box_counts(packed: torch.Tensor, H: int, W: int, cutoff: float, tile: int = 16) -> dict:
     """What the CPU rasteriser's binning and tile loop see, for the reference boxes and the
     tightened ones: tile entries (a splat in one tile's bin), tile rows (a splat's box rows in
-    one tile: one pair of 8-pixel gate vectors each) and box pixels, over valid splats."""
+    one tile: the tile loop's unit, one pair of 8-pixel gate tests unless the row is skipped as
+    full and closer) and box pixels, over valid splats."""
     valid = packed[..., 9] > 0
     res = {}
     for name, box in (("bbox", bbox(packed, H, W)), ("tight", tight_bbox(packed, H, W, cutoff))):
