@@ -382,8 +382,9 @@ def test_tightened_boxes_keep_pixels_on_the_cutoff_ellipse(vector, cpp_backend):
     margin for quad()'s float32 rounding); the reference tests every pixel of the padded box. Each
     splat has one pixel centre on its cutoff ellipse where the form is minimal over that pixel's
     row or column (_splat_with_a_pixel_on_its_ellipse). The caches must be identical and hold most
-    of those pixels. Without the rounding margin (the kernel edited to f = 1), or with f = 1 +
-    1e-6, boundary rows are dropped and the caches differ."""
+    of those pixels. Without the rounding margin (the kernel edited to g = det4), or with a
+    margin 10^-6 too small (g = det4 * (1 + 1e-6)), boundary rows are dropped and the caches
+    differ."""
     import numpy as np
 
     from dss import _ext
