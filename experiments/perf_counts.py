@@ -166,13 +166,19 @@ def _step_counts(pts, nrm, cams, sigma, s: RenderSettings) -> dict:
             "nonzero_gradient_pixels": int(nz.sum()), "cache_entries": int((frags.idx >= 0).sum())}
 
 
-def count(n: int, views: int = 12, size: int = 256) -> dict:
+def _workload(n: int, views: int, size: int):
+    """The benchmark cloud of n points, its cameras, settings (window 4), sigma, source name and
+    its projected splats (packed (V, N, 10))."""
     pts, nrm, src = benchmark_cloud(n)
     cams = cameras_for(pts, views, size)
     s = RenderSettings(window=POSITION_WINDOW)
     sigma = auto_sigma(pts)
     sp = project_splats(pts, nrm, cams, sigma, s.cutoff, s.backface_culling, s.znear, s.filter_variance)
-    pk = sp.packed
+    return pts, nrm, cams, s, sigma, src, sp.packed
+
+
+def count(n: int, views: int = 12, size: int = 256) -> dict:
+    pts, nrm, cams, s, sigma, src, pk = _workload(n, views, size)
     valid = pk[..., 9] > 0
     j0, j1, i0, i1 = bbox(pk, size, size)
     area = ((j1 - j0 + 1).clamp_min(0) * (i1 - i0 + 1).clamp_min(0)).float() * valid
@@ -272,13 +278,9 @@ def main(argv=None) -> int:
 
         rows = []
         for n in args.sizes:
-            pts, nrm, src = benchmark_cloud(n)
-            cams = cameras_for(pts, 12, 256)
-            s = RenderSettings(window=POSITION_WINDOW)
-            sp = project_splats(pts, nrm, cams, auto_sigma(pts), s.cutoff, s.backface_culling, s.znear,
-                                s.filter_variance)
+            _, _, _, s, _, src, packed = _workload(n, 12, 256)
             rows.append({"points": n, "views": 12, "image_size": 256, "source": src,
-                         **box_counts(sp.packed, 256, 256, s.cutoff)})
+                         **box_counts(packed, 256, 256, s.cutoff)})
             print(json.dumps(rows[-1]))
         argv_s = argv if argv is not None else sys.argv[1:]
         atomic_write_json(args.boxes, {"command": "python -m experiments.perf_counts " + " ".join(argv_s),
