@@ -61,13 +61,14 @@ struct Drawn {
   Box b;
 };
 
-// Same arithmetic as reference.bbox(): float32 floor/ceil, then clamps.
-inline Box splat_box(const float* s, int H, int W) {
+// Same arithmetic as reference.bbox(): float32 floor/ceil, then clamps. (u, v): the centre,
+// (rx, ry): the extent (packed fields 0, 1, 7, 8).
+DSS_INLINE Box splat_box(float u, float v, float rx, float ry, int H, int W) {
   auto clampf = [](float x, float lo, float hi) { return std::min(std::max(x, lo), hi); };
-  float j0 = clampf(std::floor(s[0] - s[7] - 0.5f), -1.f, (float)W) - 1.f;
-  float j1 = clampf(std::ceil(s[0] + s[7] - 0.5f), -1.f, (float)W) + 1.f;
-  float i0 = clampf(std::floor(s[1] - s[8] - 0.5f), -1.f, (float)H) - 1.f;
-  float i1 = clampf(std::ceil(s[1] + s[8] - 0.5f), -1.f, (float)H) + 1.f;
+  float j0 = clampf(std::floor(u - rx - 0.5f), -1.f, (float)W) - 1.f;
+  float j1 = clampf(std::ceil(u + rx - 0.5f), -1.f, (float)W) + 1.f;
+  float i0 = clampf(std::floor(v - ry - 0.5f), -1.f, (float)H) - 1.f;
+  float i1 = clampf(std::ceil(v + ry - 0.5f), -1.f, (float)H) + 1.f;
   Box b;
   b.j0 = (int)clampf(j0, 0.f, (float)(W - 1));
   b.j1 = (int)clampf(j1, 0.f, (float)(W - 1));
@@ -78,11 +79,42 @@ inline Box splat_box(const float* s, int H, int W) {
 
 inline float quad(const float* s, float dx, float dy) { return dss_splat::quad(s[2], s[3], s[4], dx, dy); }
 
-// splat_box() shrunk by the edge rows and columns that cannot hold a pixel passing the cutoff
-// test (dss_splat::tighten_box); false when none is left.
-inline bool tighten_box(const float* s, float cutoff, Box& b) {
-  return dss_splat::tighten_box(s, cutoff, b.j0, b.j1, b.i0, b.i1);
+// The binning's first pass over one view's splats, kScanBlock at a time: each splat's box
+// (splat_box, then tighten_box) and whether it is drawn (valid, centre and extent not NaN, a box
+// left on screen), in straight-line code that the compiler vectorises; the caller then takes the
+// drawn ones. (One splat at a time, with branches, the pass took about 2.2 of the rasteriser's
+// 11.6 ms at 20K points.) A NaN row's fields are replaced by zeros first, so that no float-to-int
+// conversion sees a NaN; it is not drawn.
+constexpr int kScanBlock = 64;
+struct ScanBlock {
+  alignas(32) int j0[kScanBlock], j1[kScanBlock], i0[kScanBlock], i1[kScanBlock], drawn[kScanBlock];
+};
+
+DSS_INLINE void scan_boxes(const float* P, int n, int H, int W, float cutoff, ScanBlock& o) {
+  alignas(32) float f[kFields][kScanBlock];  // the rows transposed: the vector loop reads planes
+  for (int j = 0; j < n; ++j)
+    for (int c = 0; c < kFields; ++c) f[c][j] = P[j * kFields + c];
+  // (no "omp simd" here: with it GCC 12 finds no vector type for the planes' loads and leaves the
+  // loop scalar; without it the loop vectorises, for AVX2 with vroundps for floor and ceil)
+  for (int j = 0; j < n; ++j) {
+    const bool fin = !std::isnan(f[0][j] + f[1][j] + f[7][j] + f[8][j]);
+    const float u = fin ? f[0][j] : 0.f, v = fin ? f[1][j] : 0.f;
+    Box b = splat_box(u, v, fin ? f[7][j] : 0.f, fin ? f[8][j] : 0.f, H, W);
+    const bool on = (b.j0 <= b.j1) & (b.i0 <= b.i1);
+    const bool left = dss_splat::tighten_box(u, v, f[2][j], f[3][j], f[4][j], cutoff, b.j0, b.j1, b.i0, b.i1);
+    o.j0[j] = b.j0;
+    o.j1[j] = b.j1;
+    o.i0[j] = b.i0;
+    o.i1[j] = b.i1;
+    o.drawn[j] = (f[9][j] > 0.f) & fin & on & left;
+  }
 }
+
+#ifdef DSS_HAVE_AVX2
+DSS_AVX2 void scan_boxes_avx2(const float* P, int n, int H, int W, float cutoff, ScanBlock& o) {
+  scan_boxes(P, n, H, W, cutoff, o);
+}
+#endif
 
 // Depth of point k's tangent plane at the pixel centre (px, py), the depth its splat would have
 // there (the backward pass's occlusion test, cases (a)/(b)). For a plane 1/z is affine in screen
@@ -366,6 +398,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   offsets.resize(V);
   bins.resize(V);
   drawn.resize(V);
+  const bool vec = use_vector_path();
   for (int64_t v = 0; v < V; ++v) offsets[v].assign(T + 1, 0);
   dynamic_for(V, 1, [&](int64_t v) {
     auto& off = offsets[v];
@@ -374,17 +407,26 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     auto& dr = drawn[v];
     dr.clear();
     float zlo = std::numeric_limits<float>::infinity(), zhi = -zlo;
-    for (int64_t k = 0; k < N; ++k) {
-      const float* s = P + (v * N + k) * kFields;
-      // (a NaN centre or extent would make the box's integer conversions undefined)
-      if (!(s[9] > 0.f) || std::isnan(s[0] + s[1] + s[7] + s[8])) continue;
-      Box b = splat_box(s, (int)H, (int)W);
-      if (b.j1 < b.j0 || b.i1 < b.i0 || !tighten_box(s, cutoff, b)) continue;
-      dr.push_back({{s[0], s[1], s[2], s[3], s[4], s[5], s[6], (int32_t)k, 0, 0, 0, 0}, b});
-      zlo = std::min(zlo, s[6]);
-      zhi = std::max(zhi, s[6]);
-      for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
-        for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) off[ty * TX + tx + 1]++;
+    ScanBlock sb;
+    for (int64_t k0 = 0; k0 < N; k0 += kScanBlock) {
+      const int nb = (int)std::min<int64_t>(kScanBlock, N - k0);
+      const float* Pb = P + (v * N + k0) * kFields;
+#ifdef DSS_HAVE_AVX2
+      if (vec)
+        scan_boxes_avx2(Pb, nb, (int)H, (int)W, cutoff, sb);
+      else
+#endif
+        scan_boxes(Pb, nb, (int)H, (int)W, cutoff, sb);
+      for (int j = 0; j < nb; ++j) {
+        if (!sb.drawn[j]) continue;
+        const float* s = Pb + j * kFields;
+        const Box b{sb.j0[j], sb.j1[j], sb.i0[j], sb.i1[j]};
+        dr.push_back({{s[0], s[1], s[2], s[3], s[4], s[5], s[6], (int32_t)(k0 + j), 0, 0, 0, 0}, b});
+        zlo = std::min(zlo, s[6]);
+        zhi = std::max(zhi, s[6]);
+        for (int ty = b.i0 / kTile; ty <= b.i1 / kTile; ++ty)
+          for (int tx = b.j0 / kTile; tx <= b.j1 / kTile; ++tx) off[ty * TX + tx + 1]++;
+      }
     }
     for (int64_t t = 0; t < T; ++t) off[t + 1] += off[t];
     bins[v].resize(off[T]);
@@ -430,7 +472,6 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
   // The tile loop, compiled for the common (K, C) = (5, 3) and (5, 1) with constant trip counts
   // and for any (K, C) at run time (C = 0: no blending).
   const int64_t Krt = K, Crt = C;
-  const bool vec = use_vector_path();
   // a tile row of the background colour
   std::vector<float> empty_bg(kTile * C);
   for (int64_t e = 0; e < kTile * C; ++e) empty_bg[e] = BG[e % C];

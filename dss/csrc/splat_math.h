@@ -242,19 +242,29 @@ DSS_SPLAT_FN int line_out(int line, float centre, double g, double lim) {
   return d * d * g > lim ? 1 : 0;
 }
 
-DSS_SPLAT_FN bool tighten_box(const float* s, float cutoff, int& j0, int& j1, int& i0, int& i1) {
-  const double a = s[2], b2 = s[3], c = s[4], two_cut = 2.0 * (double)cutoff;
-  if (!(a > 1e-30 && c > 1e-30 && a < 1e30 && c < 1e30 && fabs(b2) < 1e30 && two_cut > 0.0)) return true;
+DSS_SPLAT_FN bool tighten_box(float u, float v, float fa, float fb2, float fc, float cutoff, int& j0, int& j1, int& i0,
+                              int& i1) {
+  const double a = fa, b2 = fb2, c = fc, two_cut = 2.0 * (double)cutoff;
   const double det4 = 4.0 * a * c - b2 * b2, g = det4 - 128.0 * 5.9604644775390625e-8 * a * c;
-  if (!(g > 0.5 * det4)) return true;
-  const double lim_row = 4.0 * a * two_cut, lim_col = 4.0 * c * two_cut;
+  const bool ok = (a > 1e-30) & (c > 1e-30) & (a < 1e30) & (c < 1e30) & (fabs(b2) < 1e30) & (two_cut > 0.0) &
+                  (g > 0.5 * det4);
+  // Straight-line (& rather than &&, and selects rather than an early return for the forms that
+  // keep their box: with g = 0 and a positive limit no line is out), so that the CPU's loop over
+  // a block of splats vectorises.
+  const double ge = ok ? g : 0.0;
+  const double lim_row = ok ? 4.0 * a * two_cut : 1.0, lim_col = ok ? 4.0 * c * two_cut : 1.0;
   for (int step = 0; step < 2; ++step) {
-    i0 += line_out(i0, s[1], g, lim_row);
-    i1 -= line_out(i1, s[1], g, lim_row);
-    j0 += line_out(j0, s[0], g, lim_col);
-    j1 -= line_out(j1, s[0], g, lim_col);
+    i0 += line_out(i0, v, ge, lim_row);
+    i1 -= line_out(i1, v, ge, lim_row);
+    j0 += line_out(j0, u, ge, lim_col);
+    j1 -= line_out(j1, u, ge, lim_col);
   }
-  return i0 <= i1 && j0 <= j1;
+  return (i0 <= i1) & (j0 <= j1);
+}
+
+// The same for a packed splat row s.
+DSS_SPLAT_FN bool tighten_box(const float* s, float cutoff, int& j0, int& j1, int& i0, int& i1) {
+  return tighten_box(s[0], s[1], s[2], s[3], s[4], cutoff, j0, j1, i0, i1);
 }
 
 }  // namespace dss_splat
