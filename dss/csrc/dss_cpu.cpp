@@ -521,6 +521,11 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     int cnt[kTile * kTile];
     std::fill(cnt, cnt + kTile * kTile, 0);
     const auto& off = offsets[v];
+    // The blend below reads the attributes of the splats that stay in the lists, rows scattered
+    // over the view's (N, C) block: fetch those of the tile's splats now, so that they arrive
+    // while the tile loop runs (a miss each otherwise: 0.9 of the rasteriser's 11.5 ms at 20K).
+    if (do_blend)
+      for (int64_t e = off[t]; e < off[t + 1]; ++e) __builtin_prefetch(A + (v * N + bins[v][e].k) * C);
 #ifdef DSS_HAVE_AVX2
     if (vec) {
       tile_fragments_avx2<KC>(bins[v].data() + off[t], off[t + 1] - off[t], ti0, tj0, tj1, Krt,
