@@ -39,6 +39,9 @@ namespace {
 constexpr int kFields = 10;  // u v conic_a conic_b2 conic_c norm depth rx ry valid
 constexpr int kTile = 16;
 constexpr int kDepthBuckets = 1024;
+// How far ahead (pixels along a row) the pixel loops of the backward passes prefetch the rows of
+// the splats cached at a pixel.
+constexpr int64_t kPixelsAhead = 8;
 
 struct Box {
   int j0, j1, i0, i1;
@@ -1306,6 +1309,12 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
       dynamic_for(H, 4, [&](int64_t i) {
         for (int64_t j = 0; j < W; ++j) {
           const int64_t p = i * W + j, g = v * HW + p;
+          if (j + kPixelsAhead < W) {
+            // the cached splats' attributes are scattered rows (a miss each): fetch those of the
+            // pixel kPixelsAhead columns on while this one is built (as the blend backward does)
+            const int32_t* qi = I + (g + kPixelsAhead) * K;
+            for (int e = 0; e < K && qi[e] >= 0; ++e) __builtin_prefetch(A + (v * N + qi[e]) * C);
+          }
           const float* gp = GR + g * C;
           bool nz = false;
           for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
@@ -1436,7 +1445,6 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 // owns its (v, k) accumulators (no race, a fixed sum order per point), and the work is the
 // number of cached fragments, not (splat box area x K) per point as a point-parallel loop over
 // each splat's box would be (2-4x slower at 20K points, 256 px).
-constexpr int64_t kBlendAhead = 8;  // pixels
 std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
                                           torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
                                           torch::Tensor grad, double merge_d) {
@@ -1473,11 +1481,11 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
         const int32_t* pi = I + g * K;
         const float* pd = D + g * K;
         const float* pr = Rh + g * K;
-        if (j + kBlendAhead < W) {
+        if (j + kPixelsAhead < W) {
           // Most cached splats cover only a few pixels of a view, so their rows (splat, attributes,
           // accumulators) are first touched here and miss the caches: fetch those of the pixel
-          // kBlendAhead columns on while this one is processed.
-          const int32_t* qi = pi + kBlendAhead * K;
+          // kPixelsAhead columns on while this one is processed.
+          const int32_t* qi = pi + kPixelsAhead * K;
           for (int e = 0; e < K && qi[e] >= 0; ++e) {
             __builtin_prefetch(P + (v * N + qi[e]) * kFields);
             __builtin_prefetch(A + (v * N + qi[e]) * C);
