@@ -82,6 +82,47 @@ DSS_INLINE Box splat_box(float u, float v, float rx, float ry, int H, int W) {
 
 inline float quad(const float* s, float dx, float dy) { return dss_splat::quad(s[2], s[3], s[4], dx, dy); }
 
+#ifdef DSS_HAVE_AVX2
+// 8 packed rows (kFields floats apart, src at row 0's first wanted field) transposed: 8
+// consecutive fields into planes dst[0..7] at columns j..j+7 (an 8x8 transpose in registers).
+DSS_AVX2 inline void transpose8_avx2(const float* src, float (*dst)[64], int j) {
+  __m256 r[8], t[8], u[8];
+  for (int l = 0; l < 8; ++l) r[l] = _mm256_loadu_ps(src + l * kFields);
+  for (int l = 0; l < 8; l += 2) {
+    t[l] = _mm256_unpacklo_ps(r[l], r[l + 1]);
+    t[l + 1] = _mm256_unpackhi_ps(r[l], r[l + 1]);
+  }
+  for (int h = 0; h < 8; h += 4) {
+    u[h] = _mm256_shuffle_ps(t[h], t[h + 2], 0x44);
+    u[h + 1] = _mm256_shuffle_ps(t[h], t[h + 2], 0xEE);
+    u[h + 2] = _mm256_shuffle_ps(t[h + 1], t[h + 3], 0x44);
+    u[h + 3] = _mm256_shuffle_ps(t[h + 1], t[h + 3], 0xEE);
+  }
+  for (int c = 0; c < 4; ++c) {
+    _mm256_storeu_ps(dst[c] + j, _mm256_permute2f128_ps(u[c], u[4 + c], 0x20));
+    _mm256_storeu_ps(dst[4 + c] + j, _mm256_permute2f128_ps(u[c], u[4 + c], 0x31));
+  }
+}
+#endif
+
+// Fields [f0, f0 + nf) of n <= 64 packed rows into planes: dst[c][j] = rows[j * kFields + f0 + c]
+// (nf >= 8, f0 + nf <= kFields), so that the vectoriser reads planes instead of strided rows.
+// kVec (only in AVX2 functions): 8 rows at a time by 8x8 transposes, the second one overlapping
+// the first when nf > 8; the rest one value at a time.
+template <bool kVec>
+DSS_INLINE void rows_to_planes(const float* rows, int n, int f0, int nf, float (*dst)[64]) {
+  int j = 0;
+#ifdef DSS_HAVE_AVX2
+  if constexpr (kVec)
+    for (; j + 8 <= n; j += 8) {
+      transpose8_avx2(rows + j * kFields + f0, dst, j);
+      if (nf > 8) transpose8_avx2(rows + j * kFields + f0 + nf - 8, dst + nf - 8, j);
+    }
+#endif
+  for (; j < n; ++j)
+    for (int c = 0; c < nf; ++c) dst[c][j] = rows[j * kFields + f0 + c];
+}
+
 // The binning's first pass over one view's splats, kScanBlock at a time: each splat's box
 // (splat_box, then tighten_box) and whether it is drawn (valid, centre and extent not NaN, a box
 // left on screen), in straight-line code that the compiler vectorises; the caller then takes the
@@ -93,10 +134,11 @@ struct ScanBlock {
   alignas(32) int j0[kScanBlock], j1[kScanBlock], i0[kScanBlock], i1[kScanBlock], drawn[kScanBlock];
 };
 
+template <bool kVec>
 DSS_INLINE void scan_boxes(const float* P, int n, int H, int W, float cutoff, ScanBlock& o) {
+  static_assert(kScanBlock == 64, "rows_to_planes writes planes of 64");
   alignas(32) float f[kFields][kScanBlock];  // the rows transposed: the vector loop reads planes
-  for (int j = 0; j < n; ++j)
-    for (int c = 0; c < kFields; ++c) f[c][j] = P[j * kFields + c];
+  rows_to_planes<kVec>(P, n, 0, kFields, f);
   // (no "omp simd" here: with it GCC 12 finds no vector type for the planes' loads and leaves the
   // loop scalar; without it the loop vectorises, for AVX2 with vroundps for floor and ceil)
   for (int j = 0; j < n; ++j) {
@@ -115,7 +157,7 @@ DSS_INLINE void scan_boxes(const float* P, int n, int H, int W, float cutoff, Sc
 
 #ifdef DSS_HAVE_AVX2
 DSS_AVX2 void scan_boxes_avx2(const float* P, int n, int H, int W, float cutoff, ScanBlock& o) {
-  scan_boxes(P, n, H, W, cutoff, o);
+  scan_boxes<true>(P, n, H, W, cutoff, o);
 }
 #endif
 
@@ -452,7 +494,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
         scan_boxes_avx2(Pb, nb, (int)H, (int)W, cutoff, sb);
       else
 #endif
-        scan_boxes(Pb, nb, (int)H, (int)W, cutoff, sb);
+        scan_boxes<false>(Pb, nb, (int)H, (int)W, cutoff, sb);
       for (int j = 0; j < nb; ++j) {
         if (!sb.drawn[j]) continue;
         const float* s = Pb + j * kFields;
@@ -1603,6 +1645,7 @@ struct ProjectGradView {
   float f, fv, C;
 };
 
+template <bool kVec>
 DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
   // (the view's values in locals: stores through out could alias a's fields otherwise)
   const float *Pp = a.Pp, *Nn = a.Nn, *Rv = a.Rv, *tv = a.tv, *Sg = a.Sg, *PK = a.PK, *GK = a.GK;
@@ -1612,18 +1655,17 @@ DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int6
     const int nbk = (int)std::min<int64_t>(kB, k1 - b0);
     // The gradient's fields 0-8 and the packed rows' 7-9 transposed to planes first: the vectoriser
     // takes no strided loads from rows of 10 with gaps.
-    alignas(32) float gk[9][kB], pk[3][kB];
-    for (int j = 0; j < nbk; ++j) {
-      for (int c = 0; c < 9; ++c) gk[c][j] = GK[(b0 + j) * kFields + c];
-      for (int c = 0; c < 3; ++c) pk[c][j] = PK[(b0 + j) * kFields + 7 + c];
-    }
+    // (fields 2-9 of the packed rows: rows_to_planes moves at least 8; 7-9 are pk[5..7])
+    alignas(32) float gk[9][kB], pk[8][kB];
+    rows_to_planes<kVec>(GK + b0 * kFields, nbk, 0, 9, gk);
+    rows_to_planes<kVec>(PK + b0 * kFields, nbk, 2, 8, pk);
 #pragma omp simd
     for (int j = 0; j < nbk; ++j) {
       const int64_t k = b0 + j;
       // culled splats get no gradient (the renderer never reads them)
       const dss_splat::SplatGrad sg =
           project_backward_one(Pp + k * 3, Nn + k * 3, Rv, tv, f, Sg[k], fv, C, gk[0][j], gk[1][j], gk[2][j], gk[3][j],
-                               gk[4][j], gk[5][j], gk[6][j], gk[7][j], gk[8][j], pk[0][j], pk[1][j], pk[2][j] > 0.f);
+                               gk[4][j], gk[5][j], gk[6][j], gk[7][j], gk[8][j], pk[5][j], pk[6][j], pk[7][j] > 0.f);
       for (int c = 0; c < 3; ++c) {
         gout[c * N + k] = sg.gp[c];
         gout[(3 + c) * N + k] = sg.gn[c];
@@ -1634,7 +1676,7 @@ DSS_INLINE void project_backward_range(const ProjectGradView& a, int64_t N, int6
 
 #ifdef DSS_HAVE_AVX2
 DSS_AVX2 void project_backward_avx2(const ProjectGradView& a, int64_t N, int64_t k0, int64_t k1, float* gout) {
-  project_backward_range(a, N, k0, k1, gout);
+  project_backward_range<true>(a, N, k0, k1, gout);
 }
 #endif
 
@@ -1702,7 +1744,7 @@ std::vector<torch::Tensor> project_splats_backward(torch::Tensor points, torch::
       return;
     }
 #endif
-    project_backward_range(a, N, k0, k1, gout);  // the baseline build
+    project_backward_range<false>(a, N, k0, k1, gout);  // the baseline build
   });
   auto gp = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
   auto gn = torch::empty({N, 3}, torch::TensorOptions().dtype(torch::kFloat32));
