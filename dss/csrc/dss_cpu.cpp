@@ -311,10 +311,11 @@ DSS_AVX2 inline unsigned fragment_gate(__m256 q, __m256 vcut, __m256 vz, __m256i
   return (unsigned)_mm256_movemask_ps(_mm256_and_ps(in, _mm256_or_ps(before, open)));
 }
 
-// One tile's fragments, a tile row (16 pixels) per two AVX2 vectors: the cutoff test
+// One tile's fragments, a tile row (16 pixels) per two AVX2 vectors, or per one vector of the 8
+// columns from the box's first when the box is at most 8 columns wide: the cutoff test
 // (0.5 q <= cutoff, q evaluated with the scalar loop's float32 operations in the same order) and
 // the top-K gate (the pixel's list is not full, or the fragment sorts before its last entry) for
-// 16 pixels at once, so only fragments that enter a list reach a branch. The gate is kept per
+// 8 or 16 pixels at once, so only fragments that enter a list reach a branch. The gate is kept per
 // pixel in three planes (open, the last entry's depth and index). The lists equal the scalar
 // loop's bit for bit: a list's content does not depend on the order fragments arrive in.
 // li/ld/lr: (256, 8) per-pixel lists, cnt: (256,) counts, all of the tile.
