@@ -163,10 +163,10 @@ def test_ab_kernels_times_two_builds_on_captured_inputs(tmp_path, cpp_backend):
 
     out = tmp_path / "ab.json"
     r = ab_kernels.run(["--kernel", "blend_backward", "--base", "HEAD", "--points", "1500", "--views", "2",
-                        "--image-size", "32", "--reps", "3", "--skip", "1", "--out", str(out)])
+                        "--image-size", "32", "--reps", "3", "--skip", "1", "--evict-mb", "2", "--out", str(out)])
     assert set(r["median_ms"]) == {"base", "work"} and all(v > 0 for v in r["median_ms"].values())
     assert len(r["runs_ms"]["base"]) == 3 and r["speedup"] > 0
-    assert json.loads(out.read_text())["kernel"] == "blend_backward"
+    assert json.loads(out.read_text())["kernel"] == "blend_backward" and r["evict_mb"] == 2
     with pytest.raises(SystemExit, match="git show"):
         ab_kernels.git_source("no-such-revision")
 
