@@ -318,7 +318,7 @@ DSS_AVX2 inline unsigned fragment_gate(__m256 q, __m256 vcut, __m256 vz, __m256i
 // 8 or 16 pixels at once, so only fragments that enter a list reach a branch. The gate is kept per
 // pixel in three planes (open, the last entry's depth and index). The lists equal the scalar
 // loop's bit for bit: a list's content does not depend on the order fragments arrive in.
-// li/ld/lr: (256, 8) per-pixel lists, cnt: (256,) counts, all of the tile.
+// li/ld/lr: (256, K) per-pixel lists, cnt: (256,) counts, all of the tile.
 template <int64_t KC>
 DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int tj0, int tj1,
                                   int64_t Krt, float cutoff, int32_t* li, float* ld, float* lr, int* cnt) {
@@ -358,9 +358,9 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
     const __m256i vk = _mm256_set1_epi32(k);
     // The fragment enters pixel p's list (tile row i); a list that fills closes its pixel's gate.
     auto insert_at = [&](int p, int i, float q) __attribute__((target("avx2"), always_inline)) {
-      int32_t* pi = li + p * 8;
-      float* pd = ld + p * 8;
-      const int c = insert_fragment(pi, pd, lr + p * 8, cnt[p], K, k, zk, f.norm * std::exp(-0.5f * q));
+      int32_t* pi = li + p * K;
+      float* pd = ld + p * K;
+      const int c = insert_fragment(pi, pd, lr + p * K, cnt[p], K, k, zk, f.norm * std::exp(-0.5f * q));
       cnt[p] = c;
       if (c == K) {
         rowopen[i - ti0] -= gopen[p] != 0;
@@ -561,11 +561,16 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     const int ty = (int)(t / TX), tx = (int)(t % TX);
     const int ti0 = ty * kTile, tj0 = tx * kTile;
     const int ti1 = std::min<int>((int)H, ti0 + kTile) - 1, tj1 = std::min<int>((int)W, tj0 + kTile) - 1;
-    // Tile-local top-K buffers (contiguous per pixel).
-    int32_t li[kTile * kTile * 8];
-    float ld[kTile * kTile * 8], lr[kTile * kTile * 8];
+    // Tile-local top-K lists in the cache's layout (K slots per pixel, a tile row's 16 pixels
+    // side by side), their slots beyond a list's count holding the empty slot (-1, inf, 0): a
+    // tile row of them is the cache's row as it is, written out without a copy.
+    alignas(32) int32_t li[kTile * kTile * 8];
+    alignas(32) float ld[kTile * kTile * 8], lr[kTile * kTile * 8];
     int cnt[kTile * kTile];
     std::fill(cnt, cnt + kTile * kTile, 0);
+    std::fill_n(li, kTile * kTile * K, -1);
+    std::fill_n(ld, kTile * kTile * K, std::numeric_limits<float>::infinity());
+    std::fill_n(lr, kTile * kTile * K, 0.f);
     const auto& off = offsets[v];
     // The blend below reads the attributes of the splats that stay in the lists, rows scattered
     // over the view's (N, C) block: fetch those of the tile's splats now, so that they arrive
@@ -599,23 +604,22 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
           if (!(0.5f * q <= cutoff)) continue;
           const int p = (i - ti0) * kTile + (j - tj0);
           const int c = cnt[p];
-          int32_t* pi = li + p * 8;
-          float* pd = ld + p * 8;
-          float* pr = lr + p * 8;
+          int32_t* pi = li + p * K;
+          float* pd = ld + p * K;
+          float* pr = lr + p * K;
           // a full list takes the fragment only if it sorts before the last entry
           if (c == K && !(zk < pd[K - 1] || (zk == pd[K - 1] && k < pi[K - 1]))) continue;
           cnt[p] = insert_fragment(pi, pd, pr, c, K, k, zk, f.norm * std::exp(-0.5f * q));
         }
       }
     }
-    // Write out the cache and blend the visible entries (Eq. sumI), a tile row at a time: empty
-    // pixels (slots (-1, inf, 0), the background) in whole-row fills, then the pixels with
-    // entries. On the vector path the row is assembled in local buffers and written with
-    // streaming stores (the 47 MB cache is not read back before it leaves the caches, so
-    // writing around them saves reading every line first); elsewhere it is assembled in place.
+    // Write out the cache and blend the visible entries (Eq. sumI), a tile row at a time. The
+    // cache rows are the tile's lists as they are; images and mask are assembled per row (empty
+    // pixels: the background, false). On the vector path every row goes out with streaming stores
+    // (the 47 MB cache is not read back before it leaves the caches, so writing around them saves
+    // reading every line first); elsewhere with plain copies.
     const int nwrt = tj1 - tj0 + 1;
-    alignas(32) int32_t bi[kTile * 8];
-    alignas(32) float bd[kTile * 8], br[kTile * 8], bimg[kTile * 16];
+    alignas(32) float bimg[kTile * 16];
     // (full tile rows with K compiled in have fixed sizes: the fills and copies inline)
     auto write_rows = [&](auto NW, auto VEC) {
       constexpr int64_t NWC = decltype(NW)::value;
@@ -623,34 +627,27 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
       const int nw = NWC > 0 ? (int)NWC : nwrt;
       for (int i = ti0; i <= ti1; ++i) {
         const int64_t g0 = (v * H + i) * W + tj0;
-        int32_t* ri = kStream ? bi : I + g0 * K;
-        float* rd = kStream ? bd : D + g0 * K;
-        float* rr = kStream ? br : Rh + g0 * K;
+        const int r = (i - ti0) * kTile;
         float* rimg = kStream ? bimg : IMG + g0 * C;
         bool* rm = Mk + g0;
-        std::fill_n(ri, nw * K, -1);
-        std::fill_n(rd, nw * K, std::numeric_limits<float>::infinity());
-        std::fill_n(rr, nw * K, 0.f);
         std::fill_n(rm, nw, false);
         if (do_blend) std::copy_n(empty_bg.data(), nw * C, rimg);
         for (int jj = 0; jj < nwrt; ++jj) {
-          const int p = (i - ti0) * kTile + jj;
+          const int p = r + jj;
           const int c = cnt[p];
           if (c == 0) continue;
-          for (int e = 0; e < c; ++e) {
-            ri[jj * K + e] = li[p * 8 + e];
-            rd[jj * K + e] = ld[p * 8 + e];
-            rr[jj * K + e] = lr[p * 8 + e];
-          }
-          const float lim = ld[p * 8] + merge;
+          const int32_t* pi = li + p * K;
+          const float* pd = ld + p * K;
+          const float* pr = lr + p * K;
+          const float lim = pd[0] + merge;
           float den = 0.f;
           float num[16] = {0};
           for (int e = 0; e < c; ++e) {
-            if (!(ld[p * 8 + e] <= lim)) break;
-            const float w = lr[p * 8 + e];
+            if (!(pd[e] <= lim)) break;
+            const float w = pr[e];
             den += w;
             if (do_blend) {
-              const float* a = A + (v * N + li[p * 8 + e]) * C;
+              const float* a = A + (v * N + pi[e]) * C;
               for (int64_t ch = 0; ch < C; ++ch) num[ch] += w * a[ch];
             }
           }
@@ -661,12 +658,17 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
         }
 #ifdef DSS_HAVE_AVX2
         if constexpr (kStream) {
-          stream_bytes(I + g0 * K, bi, sizeof(int32_t) * nw * K);
-          stream_bytes(D + g0 * K, bd, sizeof(float) * nw * K);
-          stream_bytes(Rh + g0 * K, br, sizeof(float) * nw * K);
+          stream_bytes(I + g0 * K, li + r * K, sizeof(int32_t) * nw * K);
+          stream_bytes(D + g0 * K, ld + r * K, sizeof(float) * nw * K);
+          stream_bytes(Rh + g0 * K, lr + r * K, sizeof(float) * nw * K);
           if (do_blend) stream_bytes(IMG + g0 * C, bimg, sizeof(float) * nw * C);
         }
 #endif
+        if constexpr (!kStream) {
+          std::copy_n(li + r * K, nw * K, I + g0 * K);
+          std::copy_n(ld + r * K, nw * K, D + g0 * K);
+          std::copy_n(lr + r * K, nw * K, Rh + g0 * K);
+        }
       }
     };
     using Full = std::integral_constant<int64_t, kTile>;
