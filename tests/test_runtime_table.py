@@ -199,6 +199,31 @@ def test_ab_step_overheads_puts_each_earlier_version_back_only_for_its_steps(cpp
 
 
 @pytest.mark.slow
+def test_ab_steps_in_process_alternates_two_kernel_builds(tmp_path, cpp_backend):
+    """experiments.ab_steps --in-process builds HEAD's and the working tree's C++ kernel side by
+    side (two builds: ~1.5 min), runs every step with each, restores the package's kernel, and
+    refuses a base whose Python under dss/ differs."""
+    import subprocess
+
+    from dss import _ext
+    from experiments import ab_steps, bench_common
+
+    before = (_ext.load_cpu, _ext.loaded_cpu)
+    out = tmp_path / "steps.json"
+    r = ab_steps.run(["--in-process", "--base", "HEAD", "--kinds", "normal", "--points", "400", "--views", "2",
+                      "--image-size", "32", "--warmup", "1", "--steps", "3", "--out", str(out)])
+    s = r["summary"]["normal"]
+    assert len(s["runs_ms"]["base"]) == 3 and len(s["runs_ms"]["work"]) == 3
+    assert s["base"]["step_ms"] > 0 and s["work"]["step_ms"] > 0 and s["speedup"] > 0
+    assert json.loads(out.read_text())["mode"] == "in-process"
+    assert (_ext.load_cpu, _ext.loaded_cpu) == before
+    first = subprocess.run(["git", "rev-list", "--max-parents=0", "HEAD"], cwd=bench_common.REPO, check=True,
+                           capture_output=True, text=True).stdout.split()[0]
+    with pytest.raises(SystemExit, match=r"only the C\+\+ kernel"):
+        ab_steps.run(["--in-process", "--base", first, "--kinds", "normal"])
+
+
+@pytest.mark.slow
 def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
     """experiments.ab_steps checks HEAD out into a worktree, runs both versions' steps in child
     processes with their own kernel builds (two builds: ~2-3 min) and removes the worktree."""
