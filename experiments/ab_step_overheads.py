@@ -19,7 +19,8 @@ place for its own steps only:
   instead of once.
 
 The median forward (render + SMAPE) and backward time of each variant over ``--rounds`` rounds
-(after 2 warm-up rounds) is printed and written to ``--out`` (JSON) with the differences to
+(after 2 warm-up rounds; :func:`alternate_steps`, which ``experiments.ab_steps --in-process``
+uses too) is printed and written to ``--out`` (JSON) with the differences to
 ``current``.
 """
 
@@ -86,8 +87,16 @@ def _variants():
             "lights": lights}
 
 
-def measure(kind: str, rounds: int, n_points: int = 20000, views: int = 12, size: int = 256) -> dict:
-    """Median forward / backward ms of each variant, the variants alternating step by step."""
+def alternate_steps(kind: str, variants: dict, rounds: int, n_points: int = 20000, views: int = 12,
+                    size: int = 256, warmup: int = 2) -> dict:
+    """Median forward / backward / step ms of each variant, the variants taking turns step by step.
+
+    ``variants`` maps a name to ``put()``, which puts that variant in place and returns the
+    function that undoes it. Each round runs one step per variant on the same cameras, target and
+    parameters (4 scenes in turn, no parameter update), in the variants' order on even rounds and
+    the reverse order on odd ones; the first ``warmup`` rounds are left out. Each variant's entry
+    keeps its ``runs_ms`` ((forward, backward) per measured step).
+    """
     from dss.losses import smape_loss
     from dss.render import render
     from experiments.bench_render import benchmark_cloud
@@ -103,11 +112,11 @@ def measure(kind: str, rounds: int, n_points: int = 20000, views: int = 12, size
         cams = sampler.sample()
         with torch.no_grad():
             scenes.append((cams, render(target_pts, nrm, cams, settings, backend="cpp", sigma=sigma).images))
-    variants = _variants()
-    times = {name: ([], []) for name in variants}
-    for r in range(rounds + 2):
-        for name, put in variants.items():
-            undo = put()
+    runs = {name: [] for name in variants}
+    names = list(variants)
+    for r in range(rounds + warmup):
+        for name in names if r % 2 == 0 else names[::-1]:
+            undo = variants[name]()
             try:
                 cams, target = scenes[r % len(scenes)]
                 t0 = time.perf_counter()
@@ -120,14 +129,16 @@ def measure(kind: str, rounds: int, n_points: int = 20000, views: int = 12, size
                 undo()
             p.grad = n.grad = None
             del img, loss
-            if r >= 2:
-                times[name][0].append(1e3 * (t1 - t0))
-                times[name][1].append(1e3 * (t2 - t1))
-    out = {}
-    for name, (f, b) in times.items():
-        out[name] = {"forward_ms": statistics.median(f), "backward_ms": statistics.median(b),
-                     "step_ms": statistics.median(x + y for x, y in zip(f, b))}
-    for name in variants:
+            if r >= warmup:
+                runs[name].append((1e3 * (t1 - t0), 1e3 * (t2 - t1)))
+    return {name: {"forward_ms": statistics.median(f for f, _ in rs), "backward_ms": statistics.median(b for _, b in rs),
+                   "step_ms": statistics.median(f + b for f, b in rs), "runs_ms": rs} for name, rs in runs.items()}
+
+
+def measure(kind: str, rounds: int, n_points: int = 20000, views: int = 12, size: int = 256) -> dict:
+    """Median forward / backward ms of each variant, the variants alternating step by step."""
+    out = alternate_steps(kind, _variants(), rounds, n_points, views, size)
+    for name in out:
         out[name]["saved_ms_by_current"] = out[name]["step_ms"] - out["current"]["step_ms"]
     return out
 

@@ -18,10 +18,11 @@ both versions alike because they alternate.
 ``--in-process`` alternates step by step instead, in one process, for a base that differs from
 the working tree only in the C++ kernel (``dss/csrc``; any other Python file under ``dss/``
 differing is refused): both revisions' ``dss_cpu.cpp`` are built side by side (as
-``experiments.ab_kernels`` does) and every step is run twice, once per build, on the same
-cameras, target and parameters, the builds' order swapped every step; the Adam update takes the
-working tree's gradient. Rounds of child processes differ by 10-15% on this machine (session 33);
-steps that alternate in one process see the same machine state.
+``experiments.ab_kernels`` does) and every step is run once per build, on the same cameras,
+target and parameters, the builds' order swapped every step
+(``experiments.ab_step_overheads.alternate_steps``; no parameter update). Rounds of child
+processes differ by 10-15% on this machine (session 33); steps that alternate in one process see
+the same machine state.
 """
 
 from __future__ import annotations
@@ -56,20 +57,17 @@ def child(kind: str, n_points: int, views: int, size: int, threads: int, warmup:
 
 
 def in_process(args) -> dict:
-    """Steps of both builds of the C++ kernel alternating in this process (``--in-process``)."""
+    """Steps of both builds of the C++ kernel alternating in this process (``--in-process``):
+    ``experiments.ab_step_overheads.alternate_steps`` with a variant per build, each putting its
+    module in place of the package's (``dss._ext.load_cpu`` / ``loaded_cpu``) for its steps."""
     import tempfile
-    import time
 
     import torch
 
     from dss import _ext
-    from dss.gc_pause import frozen_gc
-    from dss.losses import smape_loss
-    from dss.render import render
     from experiments import ab_kernels
+    from experiments.ab_step_overheads import alternate_steps
     from experiments.bench_common import REPO
-    from experiments.bench_render import benchmark_cloud
-    from experiments.runtime_table import step_scene
 
     changed = subprocess.run(["git", "diff", "--name-only", args.base, "--", "dss"], cwd=REPO, check=True,
                              capture_output=True, text=True).stdout.split()
@@ -78,57 +76,26 @@ def in_process(args) -> dict:
         raise SystemExit(f"--in-process swaps only the C++ kernel, but these files differ from {args.base}: "
                          f"{', '.join(python)}; run without --in-process")
     torch.set_num_threads(args.threads)
-    pts, nrm, _ = benchmark_cloud(args.points)
-    out: dict = {}
-    original = (_ext.load_cpu, _ext.loaded_cpu)
     with tempfile.TemporaryDirectory() as tmp:
         mods = {"base": ab_kernels.build("dss_abs_base", ab_kernels.git_source(args.base), Path(tmp),
                                          ab_kernels.git_headers(args.base)),
                 "work": ab_kernels.build("dss_abs_work", (REPO / ab_kernels.SOURCE).read_text(), Path(tmp))}
 
-        def use(name):
-            _ext.load_cpu = _ext.loaded_cpu = lambda m=mods[name]: m
+        def variant(mod):
+            def put():
+                before = (_ext.load_cpu, _ext.loaded_cpu)
+                _ext.load_cpu = _ext.loaded_cpu = lambda: mod
 
-        try:
-            for kind in args.kinds:
-                sc = step_scene(pts, args.views, args.image_size, 0)
-                p = pts.clone().requires_grad_(kind == "position")
-                n = nrm.clone().requires_grad_(kind == "normal")
-                param = p if kind == "position" else n
-                opt = torch.optim.Adam([param], lr=1e-4 if kind == "position" else 1e-3)
-                runs: dict = {name: [] for name in mods}
-                with frozen_gc():
-                    for step in range(args.warmup + args.steps):
-                        cams = sc.sampler.sample()
-                        use("work")
-                        with torch.no_grad():
-                            target = render(sc.target_points, nrm, cams, sc.settings, backend="cpp",
-                                            sigma=sc.sigma).images
-                        for name in ("base", "work") if step % 2 == 0 else ("work", "base"):
-                            use(name)
-                            param.grad = None
-                            t0 = time.perf_counter()
-                            img = render(p, n, cams, sc.settings, backend="cpp", sigma=sc.sigma).images
-                            loss = smape_loss(img, target, channel_reduction="mean")
-                            t1 = time.perf_counter()
-                            loss.backward()
-                            t2 = time.perf_counter()
-                            del img, loss
-                            if step >= args.warmup:
-                                runs[name].append((1e3 * (t1 - t0), 1e3 * (t2 - t1)))
-                        if (step + 1) % 10 == 0:
-                            print(f"{kind}: step {step + 1}/{args.warmup + args.steps}", flush=True)
-                        with torch.no_grad():  # the working tree's gradient (the last build run, or not)
-                            param.grad.nan_to_num_(0.0, 0.0, 0.0)
-                            opt.step()
-                            if kind == "normal":
-                                n.copy_(torch.nn.functional.normalize(n, dim=1))
-                med = {name: {"forward_ms": statistics.median(f for f, _ in r),
-                              "backward_ms": statistics.median(b for _, b in r),
-                              "step_ms": statistics.median(f + b for f, b in r)} for name, r in runs.items()}
-                out[kind] = {**med, "speedup": med["base"]["step_ms"] / med["work"]["step_ms"], "runs_ms": runs}
-        finally:
-            _ext.load_cpu, _ext.loaded_cpu = original
+                def undo():
+                    _ext.load_cpu, _ext.loaded_cpu = before
+                return undo
+            return put
+
+        out = {}
+        for kind in args.kinds:
+            med = alternate_steps(kind, {name: variant(m) for name, m in mods.items()}, args.steps, args.points,
+                                  args.views, args.image_size, warmup=args.warmup)
+            out[kind] = {**med, "speedup": med["base"]["step_ms"] / med["work"]["step_ms"]}
     return out
 
 
@@ -157,7 +124,8 @@ def run(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=9)
     ap.add_argument("--in-process", action="store_true",
                     help="alternate the two builds of the C++ kernel step by step in this process (the base may "
-                         "differ from the working tree only in dss/csrc); --steps steps per build after --warmup")
+                         "differ from the working tree only in dss/csrc); --steps steps per build after --warmup "
+                         "rounds")
     ap.add_argument("--out", default=None, help="JSON file for the result")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

@@ -213,7 +213,7 @@ def test_ab_steps_in_process_alternates_two_kernel_builds(tmp_path, cpp_backend)
     r = ab_steps.run(["--in-process", "--base", "HEAD", "--kinds", "normal", "--points", "400", "--views", "2",
                       "--image-size", "32", "--warmup", "1", "--steps", "3", "--out", str(out)])
     s = r["summary"]["normal"]
-    assert len(s["runs_ms"]["base"]) == 3 and len(s["runs_ms"]["work"]) == 3
+    assert len(s["base"]["runs_ms"]) == 3 and len(s["work"]["runs_ms"]) == 3
     assert s["base"]["step_ms"] > 0 and s["work"]["step_ms"] > 0 and s["speedup"] > 0
     assert json.loads(out.read_text())["mode"] == "in-process"
     assert (_ext.load_cpu, _ext.loaded_cpu) == before

@@ -568,28 +568,35 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
     const int ti1 = std::min<int>((int)H, ti0 + kTile) - 1, tj1 = std::min<int>((int)W, tj0 + kTile) - 1;
     const auto& off = offsets[v];
     const int nwrt = tj1 - tj0 + 1;  // the tile's columns on the image
+    // One tile row (pixels from g0 on) out: cache slots from si/sd/sr (nwrt * K values each) and,
+    // where simg is given, the image row; with streaming stores on the vector path (the 47 MB
+    // cache is not read back before it leaves the caches, so writing around them saves reading
+    // every line first), plain copies elsewhere.
+    auto put_row = [&](int64_t g0, const int32_t* si, const float* sd, const float* sr, const float* simg) {
+#ifdef DSS_HAVE_AVX2
+      if (vec) {
+        stream_bytes(I + g0 * K, si, sizeof(int32_t) * nwrt * K);
+        stream_bytes(D + g0 * K, sd, sizeof(float) * nwrt * K);
+        stream_bytes(Rh + g0 * K, sr, sizeof(float) * nwrt * K);
+        if (simg) stream_bytes(IMG + g0 * C, simg, sizeof(float) * nwrt * C);
+        return;
+      }
+#endif
+      std::copy_n(si, nwrt * K, I + g0 * K);
+      std::copy_n(sd, nwrt * K, D + g0 * K);
+      std::copy_n(sr, nwrt * K, Rh + g0 * K);
+      if (simg) std::copy_n(simg, nwrt * C, IMG + g0 * C);
+    };
     if (off[t + 1] == off[t]) {
       // No splat reaches the tile (most tiles: 83% at 20K points, 12 views of 256x256): empty
       // slots, the background and a false mask, row by row, without the lists and the tile loop.
       for (int i = ti0; i <= ti1; ++i) {
         const int64_t g0 = (v * H + i) * W + tj0;
         std::fill_n(Mk + g0, nwrt, false);
-#ifdef DSS_HAVE_AVX2
-        if (vec) {
-          stream_bytes(I + g0 * K, empty_i, sizeof(int32_t) * nwrt * K);
-          stream_bytes(D + g0 * K, empty_d, sizeof(float) * nwrt * K);
-          stream_bytes(Rh + g0 * K, empty_r, sizeof(float) * nwrt * K);
-          if (do_blend) stream_bytes(IMG + g0 * C, empty_bg.data(), sizeof(float) * nwrt * C);
-          continue;
-        }
-#endif
-        std::copy_n(empty_i, nwrt * K, I + g0 * K);
-        std::copy_n(empty_d, nwrt * K, D + g0 * K);
-        std::copy_n(empty_r, nwrt * K, Rh + g0 * K);
-        if (do_blend) std::copy_n(empty_bg.data(), nwrt * C, IMG + g0 * C);
+        put_row(g0, empty_i, empty_d, empty_r, do_blend ? empty_bg.data() : nullptr);
       }
 #ifdef DSS_HAVE_AVX2
-      if (vec) _mm_sfence();
+      if (vec) _mm_sfence();  // this thread's streaming stores are weakly ordered: drain them
 #endif
       return;
     }
@@ -645,10 +652,8 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
       }
     }
     // Write out the cache and blend the visible entries (Eq. sumI), a tile row at a time. The
-    // cache rows are the tile's lists as they are; images and mask are assembled per row (empty
-    // pixels: the background, false). On the vector path every row goes out with streaming stores
-    // (the 47 MB cache is not read back before it leaves the caches, so writing around them saves
-    // reading every line first); elsewhere with plain copies.
+    // cache rows are the tile's lists as they are (put_row); images and mask are assembled per
+    // row (empty pixels: the background, false), the image in a local row on the vector path.
     alignas(32) float bimg[kTile * 16];
     // (full tile rows with K compiled in have fixed sizes: the fills and copies inline)
     auto write_rows = [&](auto NW, auto VEC) {
@@ -686,19 +691,8 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor packed, torch::Tensor
             for (int64_t ch = 0; ch < C; ++ch) rimg[jj * C + ch] = num[ch] / den;
           }
         }
-#ifdef DSS_HAVE_AVX2
-        if constexpr (kStream) {
-          stream_bytes(I + g0 * K, li + r * K, sizeof(int32_t) * nw * K);
-          stream_bytes(D + g0 * K, ld + r * K, sizeof(float) * nw * K);
-          stream_bytes(Rh + g0 * K, lr + r * K, sizeof(float) * nw * K);
-          if (do_blend) stream_bytes(IMG + g0 * C, bimg, sizeof(float) * nw * C);
-        }
-#endif
-        if constexpr (!kStream) {
-          std::copy_n(li + r * K, nw * K, I + g0 * K);
-          std::copy_n(ld + r * K, nw * K, D + g0 * K);
-          std::copy_n(lr + r * K, nw * K, Rh + g0 * K);
-        }
+        // (the plain path assembled the image row in place)
+        put_row(g0, li + r * K, ld + r * K, lr + r * K, kStream && do_blend ? bimg : nullptr);
       }
     };
     using Full = std::integral_constant<int64_t, kTile>;
