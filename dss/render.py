@@ -287,8 +287,8 @@ class _KernelBlend(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, packed, attrs, points, images, frags_t, cam_t, background, opts):
-        ctx.save_for_backward(packed.detach(), attrs.detach(), *frags_t, *cam_t, background, images)
+    def forward(ctx, packed, attrs, points, images, mask, frags_t, cam_t, background, opts):
+        ctx.save_for_backward(packed.detach(), attrs.detach(), *frags_t, *cam_t, background, images, mask)
         ctx.opts = opts
         # A view, not a copy (a 9 MB copy per step at 12 views of 256x256, ~0.8 ms on 2 cores):
         # the backward reads the saved images, so an in-place edit of the output would change
@@ -298,16 +298,19 @@ class _KernelBlend(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        packed, attrs, idx, depth, rho, R, t, focal, principal, background, images = ctx.saved_tensors
+        packed, attrs, idx, depth, rho, R, t, focal, principal, background, images, mask = ctx.saved_tensors
         o = ctx.opts
         grad = grad.contiguous().float()
         g_packed = g_attrs = g_points = None
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            # the C++ kernel visits only the mask's pixels (9% of them at 20K points, 12 views of
+            # 256x256) instead of reading every pixel's cache row; the CUDA one runs per point
+            mask_arg = (mask,) if o["backend"] == "cpp" else ()
             g_packed, g_attrs = _kernels(o["backend"]).blend_backward(packed, attrs, idx, depth, rho, images, grad,
-                                                                       o["merge"])
+                                                                       o["merge"], *mask_arg)
         if ctx.needs_input_grad[2] and o["mode"] != "none":
             g_points = _visibility_grad(o, packed, attrs, idx, depth, rho, images, grad, R, t, focal, principal, background)
-        return g_packed, g_attrs, g_points, None, None, None, None, None
+        return g_packed, g_attrs, g_points, None, None, None, None, None, None
 
 
 class _KernelProject(torch.autograd.Function):
@@ -482,7 +485,8 @@ def render(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, settin
         opts["planes"] = (_tangent_planes(points, normals, cameras, settings.occlusion_depth, backend)
                           if vis_points.requires_grad else None)
         if backend in ("cpp", "cuda"):
-            images = _KernelBlend.apply(splats.packed, attrs, vis_points, images.float(), frags_t, cam_t, bg, opts)
+            images = _KernelBlend.apply(splats.packed, attrs, vis_points, images.float(), mask, frags_t, cam_t, bg,
+                                        opts)
         else:
             images, mask = _blend_differentiable(frags, splats, attrs, bg)
             if vis_points.requires_grad:

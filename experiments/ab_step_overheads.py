@@ -50,8 +50,8 @@ def _variants():
     def copy():
         fwd = R._KernelBlend.forward
 
-        def forward(ctx, packed, attrs, points, images, frags_t, cam_t, background, opts):
-            fwd(ctx, packed, attrs, points, images, frags_t, cam_t, background, opts)
+        def forward(ctx, packed, attrs, points, images, mask, frags_t, cam_t, background, opts):
+            fwd(ctx, packed, attrs, points, images, mask, frags_t, cam_t, background, opts)
             return images.clone()
 
         return patch(R._KernelBlend, "forward", staticmethod(forward))

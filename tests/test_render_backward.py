@@ -388,6 +388,29 @@ def test_kernel_uses_every_thread_and_gives_the_same_bits(cpp_backend):
     assert (res[2][0] >= 0).any() and res[2][4].abs().max() > 0 and res[2][6].abs().max() > 0
 
 
+
+def test_blend_backward_with_the_mask_gives_the_bits_without_it(cpp_backend):
+    """blend_backward given the rasteriser's mask (what render() passes: it then visits only the
+    mask's pixels, never reading the cache rows of the others) gives exactly what it gives when it
+    finds those pixels itself from every cache row; a mask of the wrong shape is refused."""
+    from dss import _ext
+
+    mod = _ext.load_cpu()
+    pts, nrm, cams, sigma, _ = random_scene(5, n=1500, views=3, size=(48, 64))
+    out = render(pts, nrm, cams, RenderSettings(spatial_sort=False), sigma=sigma, backend=cpp_backend)
+    packed, attrs = out.splats.packed.detach().float().contiguous(), out.attributes.detach().float().contiguous()
+    H, W = cams.image_size
+    idx, depth, rho, images, mask = mod.rasterize_forward(packed, attrs, H, W, 5, 3.0, 0.05, torch.zeros(3))
+    assert 0.05 < mask.float().mean() < 0.95
+    grad = torch.linspace(-1, 1, images.numel()).view_as(images).contiguous()
+    with_mask = mod.blend_backward(packed, attrs, idx, depth, rho, images, grad, 0.05, mask)
+    without = mod.blend_backward(packed, attrs, idx, depth, rho, images, grad, 0.05)
+    assert with_mask[0].abs().sum() > 0
+    for a, b in zip(with_mask, without):
+        assert torch.equal(a, b)
+    with pytest.raises(RuntimeError, match="mask must be"):
+        mod.blend_backward(packed, attrs, idx, depth, rho, images, grad, 0.05, mask[:, 1:])
+
 def test_cpp_projection_backward_equals_torch_autograd(cpp_backend):
     """project_splats_backward (the C++ projection's hand-written backward that render() uses
     with the cpp backend) gives the gradients torch autograd takes through

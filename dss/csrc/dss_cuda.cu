@@ -3,8 +3,9 @@
 // Same contract as the CPU kernel (dss_cpu.cpp) and the torch reference: same packed splats, the
 // same per-pixel tests written as the same float32 expressions in the same order (build with
 // --fmad=false so no fused multiply-add changes a rounding), the same (depth, index) order of the
-// top-K cache. idx and depth therefore match the CPU kernel exactly; rho and the images differ
-// only by expf's last-bit differences (CUDA expf is within 2 ulp).
+// top-K cache, and exp as dss_splat::splat_exp (float32 operations only, not CUDA's expf, whose
+// last bit differs from the host's). The caches and images therefore match the CPU kernel's bit
+// for bit.
 //
 // Forward, with tile binning (no pixel loops over all points):
 //   1. bin_count: one thread per (view, splat) counts the 16x16 tiles its cutoff box touches;
@@ -184,7 +185,7 @@ __global__ void __launch_bounds__(kBlockPixels)
         float cz = s_z[m];
         int ck = s_k[m];
         if (!before(cz, ck, kd[K - 1], ki[K - 1])) continue;  // full and behind the last entry
-        float cr = s_norm[m] * expf(-0.5f * q);
+        float cr = s_norm[m] * dss_splat::splat_exp(-0.5f * q);
         // One pass of compare-and-swap inserts the candidate; the last entry falls off.
 #pragma unroll
         for (int e = 0; e < K; ++e) {
@@ -379,7 +380,7 @@ __device__ __forceinline__ void vis_eval_pixel(const float* __restrict__ s, cons
   const float ddx = px - u, ddy = py - vv;
   if (mode == 1) {  // rbf: derivative of a smooth Gaussian visibility h = exp(-q/2)
     const float q = quad(s[2], s[3], s[4], ddx, ddy);
-    const float h = expf(-0.5f * q);
+    const float h = dss_splat::splat_exp(-0.5f * q);
     const float sgn = kase == 2 ? -1.f : 1.f;  // Phi = I_without + h (I_with - I_without)
     const float gu = h * (s[2] * ddx + 0.5f * s[3] * ddy);
     const float gv = h * (0.5f * s[3] * ddx + s[4] * ddy);
