@@ -15,6 +15,9 @@ import torch
 
 __all__ = ["morton_codes", "spatial_order", "SORT_MIN_POINTS"]
 
+#: (a copy of the CPU points last sorted, their order): see :func:`spatial_order`
+_last_sorted: tuple[torch.Tensor, torch.Tensor] | None = None
+
 #: below this many points the sort costs more than it saves (everything fits in cache)
 SORT_MIN_POINTS = 2048
 
@@ -41,10 +44,25 @@ def spatial_order(points: torch.Tensor) -> torch.Tensor:
 
     CPU float32 points go through the C++ twin (``morton_order`` in dss_cpu.cpp: the same codes,
     a radix sort; ~0.5 against ~2.3 ms per 20K-point render) when the module is already loaded;
-    :func:`morton_codes` + ``torch.argsort`` here is the reference it is tested against."""
+    :func:`morton_codes` + ``torch.argsort`` here is the reference it is tested against.
+
+    On the CPU the last order is kept with a copy of its points and returned again while the
+    points are equal to that copy, bit for bit (the order is a function of their values): steps
+    that do not move the points (normal, colour or sigma steps) compare 20K points in ~0.03 ms
+    instead of sorting them in ~0.3 ms."""
+    global _last_sorted
     from . import _ext
 
+    p = points.detach()
+    if p.device.type == "cpu":
+        last = _last_sorted
+        if last is not None and last[0].dtype == p.dtype and last[0].shape == p.shape and torch.equal(last[0], p):
+            return last[1].clone()  # (the caller may edit its copy)
     mod = _ext.loaded_cpu()
-    if mod is not None and points.device.type == "cpu" and points.dtype == torch.float32:
-        return mod.morton_order(points.detach())
-    return torch.argsort(morton_codes(points), stable=True)
+    if mod is not None and p.device.type == "cpu" and p.dtype == torch.float32:
+        order = mod.morton_order(p)
+    else:
+        order = torch.argsort(morton_codes(p), stable=True)
+    if p.device.type == "cpu":
+        _last_sorted = (p.clone(), order.clone())
+    return order

@@ -349,6 +349,25 @@ def test_cpp_morton_order_equals_the_torch_one(cpp_backend):
     assert len(set(morton_codes(clouds[1]).tolist())) < 3000  # the ties were there
 
 
+def test_spatial_order_is_reused_only_for_equal_points():
+    """spatial_order keeps its last CPU order with a copy of the points: equal points (the same
+    tensor or an equal one) get it again, as a copy the caller may edit; points edited in any way
+    (in place, even through .data or numpy, which autograd's version counter does not see) are
+    sorted afresh."""
+    from dss.ordering import morton_codes, spatial_order
+
+    pts = torch.randn(4000, 3, generator=torch.Generator().manual_seed(8))
+    first = spatial_order(pts)
+    again = spatial_order(pts)
+    assert torch.equal(first, again) and first.data_ptr() != again.data_ptr()
+    again.zero_()  # the caller's copy
+    assert torch.equal(spatial_order(pts.clone()), first)
+    pts.data[:100] = pts.data[:100].flip(0)
+    pts.numpy()[200] += 5.0
+    assert torch.equal(spatial_order(pts), torch.argsort(morton_codes(pts), stable=True))
+    assert not torch.equal(spatial_order(pts), first)
+
+
 def test_kernel_uses_every_thread_and_gives_the_same_bits(cpp_backend):
     """The C++ kernel is built with OpenMP on Linux (without it at::parallel_for silently runs on
     one thread), and its three kernels give the same bits on 1 and 2 threads for the same inputs:
