@@ -15,8 +15,13 @@ import torch
 
 __all__ = ["morton_codes", "spatial_order", "SORT_MIN_POINTS"]
 
-#: (a copy of the CPU points last sorted, their order): see :func:`spatial_order`
-_last_sorted: tuple[torch.Tensor, torch.Tensor] | None = None
+#: (a copy of CPU points sorted lately, their order), most recent first: see :func:`spatial_order`
+_recent: list[tuple[torch.Tensor, torch.Tensor]] = []
+#: how many clouds' orders are kept (an optimisation step renders its cloud and, in the runtime
+#: table's protocol, a moved target cloud: two at a time)
+RECENT_ORDERS = 4
+#: clouds above this many points are not kept (4 copies of 1M points and orders: 80 MB)
+RECENT_MAX_POINTS = 1_000_000
 
 #: below this many points the sort costs more than it saves (everything fits in cache)
 SORT_MIN_POINTS = 2048
@@ -46,23 +51,27 @@ def spatial_order(points: torch.Tensor) -> torch.Tensor:
     a radix sort; ~0.5 against ~2.3 ms per 20K-point render) when the module is already loaded;
     :func:`morton_codes` + ``torch.argsort`` here is the reference it is tested against.
 
-    On the CPU the last order is kept with a copy of its points and returned again while the
-    points are equal to that copy, bit for bit (the order is a function of their values): steps
-    that do not move the points (normal, colour or sigma steps) compare 20K points in ~0.03 ms
-    instead of sorting them in ~0.3 ms."""
-    global _last_sorted
+    On the CPU the orders of the last :data:`RECENT_ORDERS` clouds (of at most
+    :data:`RECENT_MAX_POINTS` points) are kept with a copy of their points, and one is returned
+    again (as a copy) for points equal to its copy, bit for bit (the order is a function of their
+    values): steps that do not move the points (normal, colour or sigma steps) compare 20K points
+    in ~0.03 ms instead of sorting them in ~0.3 ms."""
+    global _recent
     from . import _ext
 
     p = points.detach()
-    if p.device.type == "cpu":
-        last = _last_sorted
-        if last is not None and last[0].dtype == p.dtype and last[0].shape == p.shape and torch.equal(last[0], p):
-            return last[1].clone()  # (the caller may edit its copy)
+    keep = p.device.type == "cpu" and p.shape[0] <= RECENT_MAX_POINTS
+    if keep:
+        recent = _recent
+        for i, (pts, order) in enumerate(recent):
+            if pts.dtype == p.dtype and pts.shape == p.shape and torch.equal(pts, p):
+                _recent = [recent[i], *recent[:i], *recent[i + 1:]]
+                return order.clone()  # (the caller may edit its copy)
     mod = _ext.loaded_cpu()
     if mod is not None and p.device.type == "cpu" and p.dtype == torch.float32:
         order = mod.morton_order(p)
     else:
         order = torch.argsort(morton_codes(p), stable=True)
-    if p.device.type == "cpu":
-        _last_sorted = (p.clone(), order.clone())
+    if keep:
+        _recent = [(p.clone(), order.clone()), *_recent[: RECENT_ORDERS - 1]]
     return order

@@ -350,8 +350,8 @@ def test_cpp_morton_order_equals_the_torch_one(cpp_backend):
 
 
 def test_spatial_order_is_reused_only_for_equal_points():
-    """spatial_order keeps its last CPU order with a copy of the points: equal points (the same
-    tensor or an equal one) get it again, as a copy the caller may edit; points edited in any way
+    """spatial_order keeps its last CPU orders with copies of the points: equal points (the same
+    tensor or an equal one) get theirs again, as a copy the caller may edit; points edited in any way
     (in place, even through .data or numpy, which autograd's version counter does not see) are
     sorted afresh."""
     from dss.ordering import morton_codes, spatial_order
@@ -362,6 +362,10 @@ def test_spatial_order_is_reused_only_for_equal_points():
     assert torch.equal(first, again) and first.data_ptr() != again.data_ptr()
     again.zero_()  # the caller's copy
     assert torch.equal(spatial_order(pts.clone()), first)
+    other = [torch.randn(4000, 3, generator=torch.Generator().manual_seed(9 + i)) for i in range(3)]
+    for q in other:  # three more clouds in between: the first one's order is still kept
+        spatial_order(q)
+    assert torch.equal(spatial_order(pts), first)
     pts.data[:100] = pts.data[:100].flip(0)
     pts.numpy()[200] += 5.0
     assert torch.equal(spatial_order(pts), torch.argsort(morton_codes(pts), stable=True))
