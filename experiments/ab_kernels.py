@@ -11,11 +11,12 @@ process and called in turn, ``--reps`` times each; the medians (after ``--skip``
 and their ratio are printed and written to ``--out`` (JSON). Before each call a 64 MB buffer is
 written (``--evict-mb``), so that each call starts with cold caches as in a step: back-to-back
 calls measured a rasteriser variant (a task per view) 1.22x faster that gained 1.02x with the
-eviction and nothing in whole steps (session 33). The kernel must have the same
-signature in both revisions (``rasterize_forward``, ``visibility_backward`` and
-``blend_backward`` have since session 19, ``project_splats_forward`` and
-``project_splats_backward`` since 0f36c07). The numbers in docs/performance.md's "What changed
-this session" come from this comparison.
+eviction and nothing in whole steps (session 33). The kernel must have the same signature in
+both revisions (``rasterize_forward``, ``visibility_backward`` and ``blend_backward`` have since
+session 19, ``project_splats_forward`` and ``project_splats_backward`` since 0f36c07, the sun
+shader's two since session 25; a trailing parameter that the base lacks is left out of its
+calls, see :func:`accepted_args`). The numbers in docs/performance.md's sections per session
+come from this comparison.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from experiments.figures import command_line
 
 SOURCE = "dss/csrc/dss_cpu.cpp"
 KERNELS = ("rasterize_forward", "visibility_backward", "blend_backward", "project_splats_forward",
-           "project_splats_backward")
+           "project_splats_backward", "sun_shade_forward", "sun_shade_backward")
 VIS_WINDOW_ARG = 12  # position of the window half size in visibility_backward's arguments
 
 
