@@ -346,3 +346,20 @@ def test_tight_boxes_hold_every_passing_pixel_and_are_smaller():
     assert c["tight"]["tile_rows"] < 0.8 * c["bbox"]["tile_rows"]
     assert c["tight"]["pixel_tests"] < 0.8 * c["bbox"]["pixel_tests"]
     assert c["tight"]["tile_entries"] <= c["bbox"]["tile_entries"]
+
+
+def test_ab_kernels_cuts_the_arguments_to_the_signature(cpp_backend):
+    """A base build without a trailing parameter (blend_backward before its optional mask) is
+    called without it: accepted_args reads the pybind signature's parameter count."""
+    from dss import _ext
+    from experiments.ab_kernels import accepted_args
+
+    mod = _ext.load_cpu()
+    args = list(range(12))
+    assert accepted_args(mod.blend_backward, args) == args[:9]  # ..., merge, mask=None
+    assert accepted_args(mod.rasterize_forward, args) == args[:8]
+
+    def undocumented(*a):
+        return a
+
+    assert accepted_args(undocumented, args) == args  # no signature to read: everything
