@@ -39,8 +39,8 @@ namespace {
 constexpr int kFields = 10;  // u v conic_a conic_b2 conic_c norm depth rx ry valid
 constexpr int kTile = 16;
 constexpr int kDepthBuckets = 1024;
-// How far ahead (pixels along a row) the pixel loops of the backward passes prefetch the rows of
-// the splats cached at a pixel.
+// How far ahead the pixel loops of the backward passes prefetch the rows of the splats cached at
+// a pixel: pixels along a row (visibility backward), pixels of the visit list (blend backward).
 constexpr int64_t kPixelsAhead = 8;
 
 struct Box {
@@ -2030,7 +2030,8 @@ void sun_forward_range(const SunArgs a, int64_t k0, int64_t k1, float* __restric
 // the per-point sums in local arrays) vectorises; each point's sums still run in (view, light)
 // order. The block's normals, albedo and each view's gradient rows are first split into planes
 // (x, y, z), so that the vector loop reads them with unit stride (with rows of 3 floats GCC left
-// it at a few lanes); kVec: compiled in an AVX2 function.
+// it at a few lanes); sun_backward_block_avx2 compiles the same body for AVX2 (1.83x, the same
+// bits: no contraction, the same operations per lane).
 constexpr int64_t kSunBlock = 256;
 template <bool ALB, bool GRAD_ALB>
 DSS_INLINE void sun_backward_block(const SunArgs& a, const float* __restrict__ G, int64_t b0, int64_t m,
