@@ -425,8 +425,8 @@ def _check_sun_shading(with_albedo, emulated, cpu_kernel):
 
 @pytest.mark.parametrize("name", list(SCENES))
 def test_emulated_blend_backward_matches_cpu_kernel(name, scenes, emulated, cpu_kernel):
-    """Same formulas, same per-splat pixel order, double sums; only expf's last bits may differ
-    (the emulation links the host's expf, the CPU kernel calls std::exp: here the same)."""
+    """Same formulas, same per-splat pixel order, double sums, the same exp (splat_exp): the
+    emulated CUDA blend backward gives the CPU kernel's bits."""
     s = scenes[name]
     cache = cpu_kernel.rasterize_forward(*forward_args(s))
     idx, depth, rho, images, _ = cache
@@ -658,7 +658,9 @@ def _assert_forward_close(a, b, where: str):
     assert torch.equal(idx_a, idx_b), f"{where}: idx differs in {(idx_a != idx_b).sum().item()} entries"
     assert torch.equal(depth_a, depth_b), f"{where}: depth differs"
     assert torch.equal(mask_a, mask_b), f"{where}: mask differs in {(mask_a != mask_b).sum().item()} pixels"
-    torch.testing.assert_close(rho_b, rho_a, rtol=1e-5, atol=1e-12)  # expf: a few ulp
+    # (the tolerance of the expf era: since session 34 both use splat_exp and agree bit for bit in
+    # the emulation; not yet run on a GPU)
+    torch.testing.assert_close(rho_b, rho_a, rtol=1e-5, atol=1e-12)
     if img_a.numel():
         torch.testing.assert_close(img_b, img_a, rtol=1e-5, atol=1e-6)
 
@@ -686,7 +688,8 @@ def test_gpu_visibility_matches_cpu_kernel(name, mode, scenes, cuda_kernel, cpu_
     sg = _to(s, "cuda")
     cache = cpu_kernel.rasterize_forward(*forward_args(s))
     grad = random_grad(cache[3], 11)
-    # Same cache on both sides: dss mode uses only correctly rounded ops; rbf has expf's ulps.
+    # Same cache on both sides: dss mode uses only correctly rounded ops; rbf had expf's ulps
+    # (splat_exp on both sides since session 34; the tolerance is kept until a GPU run).
     ga = cpu_kernel.visibility_backward(*backward_args(s, cache, grad, mode))
     gb = cuda_kernel.visibility_backward(*backward_args(sg, [c.cuda() for c in cache], grad.cuda(), mode)).cpu()
     assert _rel_max(ga, gb) <= (1e-5 if mode == 0 else 1e-4)
