@@ -1650,7 +1650,7 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
       const int32_t* pi = I + g * K;
       const float* pd = D + g * K;
       const float* pr = Rh + g * K;
-      if (pi[0] < 0) continue;
+      // (every listed pixel has an entry; a mask true at an empty pixel finds den = 0 below)
       const float lim = pd[0] + merge;
       int nvis = 0;
       float den = 0.f;
