@@ -330,8 +330,8 @@ DSS_AVX2 void stream_bytes(void* dst, const void* src, size_t n) {
 // mispredicted loop exit per insertion fewer (the loop ran 0-4 times, unpredictably).
 // pi/pd/pr: the pixel's K slots, readable 8 values on (the tile lists' padding).
 template <int64_t KC>
-DSS_AVX2 inline int insert_fragment_avx2(int32_t* pi, float* pd, float* pr, int c, int64_t Krt, int32_t k, float zk,
-                                         float r) {
+DSS_AVX2 inline int insert_fragment_avx2(int32_t* pi, float* pd, float* pr, float* pn, int c, int64_t Krt, int32_t k,
+                                         float zk, float r, float nv) {
   const int K = KC > 0 ? (int)KC : (int)Krt;
   const int n = c == K ? K - 1 : c;
   const __m256 d = _mm256_loadu_ps(pd);
@@ -350,20 +350,23 @@ DSS_AVX2 inline int insert_fragment_avx2(int32_t* pi, float* pd, float* pr, int 
   const __m256 ni = _mm256_blendv_ps(_mm256_castsi256_ps(_mm256_permutevar8x32_epi32(id, from)),
                                      _mm256_castsi256_ps(_mm256_set1_epi32(k)), at);
   const __m256 nr = _mm256_blendv_ps(_mm256_permutevar8x32_ps(_mm256_loadu_ps(pr), from), _mm256_set1_ps(r), at);
+  const __m256 nn = _mm256_blendv_ps(_mm256_permutevar8x32_ps(_mm256_loadu_ps(pn), from), _mm256_set1_ps(nv), at);
   if (K == 5) {
     // (four lanes and one: the slots after the fifth belong to the next pixel)
     _mm_storeu_ps(pd, _mm256_castps256_ps128(nd));
     _mm_storeu_ps((float*)pi, _mm256_castps256_ps128(ni));
     _mm_storeu_ps(pr, _mm256_castps256_ps128(nr));
-    const __m128 hd = _mm256_extractf128_ps(nd, 1), hi = _mm256_extractf128_ps(ni, 1), hr = _mm256_extractf128_ps(nr, 1);
-    _mm_store_ss(pd + 4, hd);
-    _mm_store_ss((float*)pi + 4, hi);
-    _mm_store_ss(pr + 4, hr);
+    _mm_storeu_ps(pn, _mm256_castps256_ps128(nn));
+    _mm_store_ss(pd + 4, _mm256_extractf128_ps(nd, 1));
+    _mm_store_ss((float*)pi + 4, _mm256_extractf128_ps(ni, 1));
+    _mm_store_ss(pr + 4, _mm256_extractf128_ps(nr, 1));
+    _mm_store_ss(pn + 4, _mm256_extractf128_ps(nn, 1));
   } else {
     const __m256i keep = _mm256_cmpgt_epi32(_mm256_set1_epi32(K), lane);
     _mm256_maskstore_ps(pd, keep, nd);
     _mm256_maskstore_ps((float*)pi, keep, ni);
     _mm256_maskstore_ps(pr, keep, nr);
+    _mm256_maskstore_ps(pn, keep, nn);
   }
   return c == K ? K : c + 1;
 }
@@ -398,11 +401,13 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
   // (8 values of padding: a window of 8 columns from column j0 > 8 of the last row reads past it)
   alignas(32) float gd[kTile * kTile + 8];
   alignas(32) int32_t gi[kTile * kTile + 8], gopen[kTile * kTile + 8];
-  // Per tile row: how many of its pixels are open, and (once none is) the farthest last entry;
-  // a fragment behind it cannot enter any list of the row, which is then skipped untested.
-  // Columns beyond the image are never tested: closed, at -inf, so they do not hold a row open.
-  float rowmax[kTile];
-  int rowopen[kTile];
+  // -q/2 at the pixels of the fragment's rows (read only where its gate let it through), and the
+  // norm of the splat in each list slot: the slots' rho = norm exp(-q/2) is evaluated once the
+  // tile is done, 8 slots per vector, instead of one vector exp per tile row a fragment enters
+  alignas(32) float xs[kTile * kTile + 8];
+  alignas(32) float ln[kTile * kTile * 8];
+  std::fill_n(ln, kTile * kTile * K, 0.f);
+  // Columns beyond the image are never tested: closed, at -inf.
   const int nw = tj1 - tj0 + 1;
   for (int p = 0; p < kTile * kTile + 8; ++p) {
     const bool in = p < kTile * kTile && p % kTile < nw;
@@ -410,11 +415,7 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
     gi[p] = 0;
     gopen[p] = in ? -1 : 0;
   }
-  for (int r = 0; r < kTile; ++r) {
-    rowmax[r] = std::numeric_limits<float>::infinity();
-    rowopen[r] = nw;
-  }
-  const __m256 half = _mm256_set1_ps(0.5f), vcut = _mm256_set1_ps(cutoff);
+  const __m256 half = _mm256_set1_ps(0.5f), mhalf = _mm256_set1_ps(-0.5f), vcut = _mm256_set1_ps(cutoff);
   const __m256 col0 = _mm256_add_ps(_mm256_cvtepi32_ps(_mm256_setr_epi32(tj0, tj0 + 1, tj0 + 2, tj0 + 3, tj0 + 4,
                                                                           tj0 + 5, tj0 + 6, tj0 + 7)), half);
   const __m256 col1 = _mm256_add_ps(_mm256_cvtepi32_ps(_mm256_setr_epi32(tj0 + 8, tj0 + 9, tj0 + 10, tj0 + 11,
@@ -423,33 +424,16 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
     const Frag& f = bin[e];
     const int32_t k = f.k;
     const float* s = &f.u;  // s[0..4]: u, v, a, b2, c as in the packed row
-    const int i0 = ti0 + f.i0, i1 = ti0 + f.i1;
-    const unsigned cols = ((2u << f.j1) - 1u) & ~((1u << f.j0) - 1u);
+    const int r0 = f.i0, r1 = f.i1;  // the box's rows in the tile
     const float zk = f.z;
     const __m256 vz = _mm256_set1_ps(zk);
     const __m256i vk = _mm256_set1_epi32(k);
-    // The fragment enters pixel p's list (tile row i); a list that fills closes its pixel's gate.
-    // (ex: exp(-q/2) at the pixel, from splat_exp_avx2 over the row's lanes)
-    auto insert_at = [&](int p, int i, float ex) __attribute__((target("avx2"), always_inline)) {
-      int32_t* pi = li + p * K;
-      float* pd = ld + p * K;
-      const int c = insert_fragment_avx2<KC>(pi, pd, lr + p * K, cnt[p], K, k, zk, f.norm * ex);
-      cnt[p] = c;
-      if (c == K) {
-        rowopen[i - ti0] -= gopen[p] != 0;
-        gopen[p] = 0;
-        gd[p] = pd[K - 1];
-        gi[p] = pi[K - 1];
-      }
-    };
-    // Once no pixel of tile row i (its values from r) is open, the row's farthest last entry.
-    auto close_row = [&](int i, int r) __attribute__((target("avx2"), always_inline)) {
-      if (rowopen[i - ti0] != 0) return;
-      const __m256 mx = _mm256_max_ps(_mm256_load_ps(gd + r), _mm256_load_ps(gd + r + 8));
-      const __m128 m4 = _mm_max_ps(_mm256_castps256_ps128(mx), _mm256_extractf128_ps(mx, 1));
-      const __m128 m2 = _mm_max_ps(m4, _mm_movehl_ps(m4, m4));
-      rowmax[i - ti0] = _mm_cvtss_f32(_mm_max_ss(m2, _mm_shuffle_ps(m2, m2, 1)));
-    };
+    // First every row's tests, into one bit per pixel of the tile (tile row r: bits 16 (r % 4) on
+    // of word r / 4), with no branch on their outcome; then the pixels that took the fragment, in
+    // one loop over the set bits. (Row by row, with a branch on each row's tests and a loop over
+    // each row's bits, a fragment cost a mispredicted branch or two per row.) The rows' tests do
+    // not depend on each other: the fragment enters distinct pixels.
+    uint64_t take[4] = {0, 0, 0, 0};
     // q = ((a dx) dx + (b2 dx) dy) + (c dy) dy: the first term and b2 dx depend on the column only
     const __m256 va = _mm256_set1_ps(s[2]), vb = _mm256_set1_ps(s[3]), vu = _mm256_set1_ps(s[0]);
     if (f.j1 - f.j0 < 8) {
@@ -460,49 +444,52 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
       const unsigned colw = (2u << (f.j1 - j0)) - 1u;
       const __m256 dx = _mm256_sub_ps(_mm256_add_ps(col0, _mm256_set1_ps((float)j0)), vu);
       const __m256 t1 = _mm256_mul_ps(_mm256_mul_ps(va, dx), dx), bx = _mm256_mul_ps(vb, dx);
-      for (int i = i0; i <= i1; ++i) {
-        if (zk > rowmax[i - ti0]) continue;
-        const float dy = ((float)i + 0.5f) - s[1];
+      for (int rr = r0; rr <= r1; ++rr) {
+        const float dy = ((float)(ti0 + rr) + 0.5f) - s[1];
         const __m256 q = _mm256_add_ps(_mm256_add_ps(t1, _mm256_mul_ps(bx, _mm256_set1_ps(dy))),
                                        _mm256_set1_ps(s[4] * dy * dy));
-        const int r = (i - ti0) * kTile;
-        unsigned m = fragment_gate(q, vcut, vz, vk, gd + r + j0, gi + r + j0, gopen + r + j0) & colw;
-        if (!m) continue;
-        alignas(32) float erow[8];
-        _mm256_store_ps(erow, splat_exp_avx2(_mm256_mul_ps(_mm256_set1_ps(-0.5f), q)));
-        for (; m; m &= m - 1) {
-          const int jq = __builtin_ctz(m), p = r + j0 + jq;
-          insert_at(p, i, erow[jq]);
-        }
-        close_row(i, r);
+        const int r = rr * kTile;
+        const unsigned m = fragment_gate(q, vcut, vz, vk, gd + r + j0, gi + r + j0, gopen + r + j0) & colw;
+        _mm256_storeu_ps(xs + r + j0, _mm256_mul_ps(mhalf, q));
+        take[rr >> 2] |= (uint64_t)(m << j0) << ((rr & 3) * kTile);
       }
-      continue;
+    } else {
+      const unsigned cols = ((2u << f.j1) - 1u) & ~((1u << f.j0) - 1u);
+      const __m256 dx0 = _mm256_sub_ps(col0, vu), dx1 = _mm256_sub_ps(col1, vu);
+      const __m256 t10 = _mm256_mul_ps(_mm256_mul_ps(va, dx0), dx0), t11 = _mm256_mul_ps(_mm256_mul_ps(va, dx1), dx1);
+      const __m256 bx0 = _mm256_mul_ps(vb, dx0), bx1 = _mm256_mul_ps(vb, dx1);
+      for (int rr = r0; rr <= r1; ++rr) {
+        const float dy = ((float)(ti0 + rr) + 0.5f) - s[1];
+        const __m256 vdy = _mm256_set1_ps(dy), t3 = _mm256_set1_ps(s[4] * dy * dy);
+        const __m256 q0 = _mm256_add_ps(_mm256_add_ps(t10, _mm256_mul_ps(bx0, vdy)), t3);
+        const __m256 q1 = _mm256_add_ps(_mm256_add_ps(t11, _mm256_mul_ps(bx1, vdy)), t3);
+        const int r = rr * kTile;
+        const unsigned m = (fragment_gate(q0, vcut, vz, vk, gd + r, gi + r, gopen + r) |
+                            (fragment_gate(q1, vcut, vz, vk, gd + r + 8, gi + r + 8, gopen + r + 8) << 8)) & cols;
+        _mm256_store_ps(xs + r, _mm256_mul_ps(mhalf, q0));
+        _mm256_store_ps(xs + r + 8, _mm256_mul_ps(mhalf, q1));
+        take[rr >> 2] |= (uint64_t)m << ((rr & 3) * kTile);
+      }
     }
-    const __m256 dx0 = _mm256_sub_ps(col0, vu), dx1 = _mm256_sub_ps(col1, vu);
-    const __m256 t10 = _mm256_mul_ps(_mm256_mul_ps(va, dx0), dx0), t11 = _mm256_mul_ps(_mm256_mul_ps(va, dx1), dx1);
-    const __m256 bx0 = _mm256_mul_ps(vb, dx0), bx1 = _mm256_mul_ps(vb, dx1);
-    for (int i = i0; i <= i1; ++i) {
-      if (zk > rowmax[i - ti0]) continue;
-      const float dy = ((float)i + 0.5f) - s[1];
-      const __m256 vdy = _mm256_set1_ps(dy), t3 = _mm256_set1_ps(s[4] * dy * dy);
-      const __m256 q0 = _mm256_add_ps(_mm256_add_ps(t10, _mm256_mul_ps(bx0, vdy)), t3);
-      const __m256 q1 = _mm256_add_ps(_mm256_add_ps(t11, _mm256_mul_ps(bx1, vdy)), t3);
-      const int r = (i - ti0) * kTile;
-      unsigned m = fragment_gate(q0, vcut, vz, vk, gd + r, gi + r, gopen + r) |
-                   (fragment_gate(q1, vcut, vz, vk, gd + r + 8, gi + r + 8, gopen + r + 8) << 8);
-      m &= cols;
-      if (!m) continue;
-      alignas(32) float erow[kTile];
-      const __m256 mhalf = _mm256_set1_ps(-0.5f);
-      if (m & 0xffu) _mm256_store_ps(erow, splat_exp_avx2(_mm256_mul_ps(mhalf, q0)));
-      if (m >> 8) _mm256_store_ps(erow + 8, splat_exp_avx2(_mm256_mul_ps(mhalf, q1)));
-      for (; m; m &= m - 1) {
-        const int jj = __builtin_ctz(m);
-        insert_at(r + jj, i, erow[jj]);
+    // The fragment enters pixel p's list; a list that fills closes its pixel's gate.
+    for (int w = r0 >> 2; w <= (r1 >> 2); ++w) {
+      for (uint64_t b = take[w]; b; b &= b - 1) {
+        const int p = w * 64 + __builtin_ctzll(b);
+        int32_t* pi = li + p * K;
+        float* pd = ld + p * K;
+        const int c = insert_fragment_avx2<KC>(pi, pd, lr + p * K, ln + p * K, cnt[p], K, k, zk, xs[p], f.norm);
+        cnt[p] = c;
+        if (c == K) {
+          gopen[p] = 0;
+          gd[p] = pd[K - 1];
+          gi[p] = pi[K - 1];
+        }
       }
-      close_row(i, r);
     }
   }
+  // rho = norm exp(-q/2) in every slot (empty ones: 0 exp(0) = 0), the scalar loop's operations
+  for (int64_t e = 0; e < kTile * kTile * K; e += 8)
+    _mm256_store_ps(lr + e, _mm256_mul_ps(_mm256_load_ps(ln + e), splat_exp_avx2(_mm256_load_ps(lr + e))));
 }
 #endif
 }  // namespace
