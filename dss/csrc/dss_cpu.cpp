@@ -43,9 +43,7 @@ constexpr int kDepthBuckets = 1024;
 // a pixel: pixels along a row (visibility backward), pixels of the visit list (blend backward).
 constexpr int64_t kPixelsAhead = 8;
 
-struct Box {
-  int j0, j1, i0, i1;
-};
+using dss_splat::Box;  // a splat's pixel box (splat_math.h)
 
 // One splat in one tile's bin: what the tile loop reads of it, in one record so that a tile
 // streams through its bin instead of gathering each splat's row of the packed array and its box
@@ -64,21 +62,7 @@ struct Drawn {
   Box b;
 };
 
-// Same arithmetic as reference.bbox(): float32 floor/ceil, then clamps. (u, v): the centre,
-// (rx, ry): the extent (packed fields 0, 1, 7, 8).
-DSS_INLINE Box splat_box(float u, float v, float rx, float ry, int H, int W) {
-  auto clampf = [](float x, float lo, float hi) { return std::min(std::max(x, lo), hi); };
-  float j0 = clampf(std::floor(u - rx - 0.5f), -1.f, (float)W) - 1.f;
-  float j1 = clampf(std::ceil(u + rx - 0.5f), -1.f, (float)W) + 1.f;
-  float i0 = clampf(std::floor(v - ry - 0.5f), -1.f, (float)H) - 1.f;
-  float i1 = clampf(std::ceil(v + ry - 0.5f), -1.f, (float)H) + 1.f;
-  Box b;
-  b.j0 = (int)clampf(j0, 0.f, (float)(W - 1));
-  b.j1 = (int)clampf(j1, 0.f, (float)(W - 1));
-  b.i0 = (int)clampf(i0, 0.f, (float)(H - 1));
-  b.i1 = (int)clampf(i1, 0.f, (float)(H - 1));
-  return b;
-}
+using dss_splat::splat_box;  // shared with the CUDA kernel
 
 inline float quad(const float* s, float dx, float dy) { return dss_splat::quad(s[2], s[3], s[4], dx, dy); }
 

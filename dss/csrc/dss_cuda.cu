@@ -48,28 +48,13 @@ namespace {
 constexpr int kBlockPixels = kTile * kTile;  // threads per tile block, also the batch size
 constexpr int kThreads1D = 256;
 
-struct Box {
-  int j0, j1, i0, i1;
-};
+using dss_splat::Box;  // a splat's pixel box (splat_math.h)
 
-// std::max(x, lo) then std::min(., hi), with the std:: comparison semantics.
-__device__ __forceinline__ float clampf(float x, float lo, float hi) {
-  const float y = (x < lo) ? lo : x;
-  return (hi < y) ? hi : y;
-}
-
-// Same arithmetic as dss_cpu.cpp splat_box() and reference.bbox().
+// dss_splat::splat_box (the CPU kernel's, reference.bbox()'s arithmetic) of a packed splat row.
 __device__ __forceinline__ Box splat_box(const float* __restrict__ s, int H, int W) {
-  const float j0 = clampf(floorf(s[0] - s[7] - 0.5f), -1.f, (float)W) - 1.f;
-  const float j1 = clampf(ceilf(s[0] + s[7] - 0.5f), -1.f, (float)W) + 1.f;
-  const float i0 = clampf(floorf(s[1] - s[8] - 0.5f), -1.f, (float)H) - 1.f;
-  const float i1 = clampf(ceilf(s[1] + s[8] - 0.5f), -1.f, (float)H) + 1.f;
-  Box b;
-  b.j0 = (int)clampf(j0, 0.f, (float)(W - 1));
-  b.j1 = (int)clampf(j1, 0.f, (float)(W - 1));
-  b.i0 = (int)clampf(i0, 0.f, (float)(H - 1));
-  b.i1 = (int)clampf(i1, 0.f, (float)(H - 1));
-  // A NaN centre converts to 0 on the GPU (undefined on the CPU); keep the box in the image anyway.
+  Box b = dss_splat::splat_box(s[0], s[1], s[7], s[8], H, W);
+  // A NaN centre converts to 0 on the GPU (undefined on the CPU, whose binning zeroes NaN rows
+  // first); keep the box in the image anyway.
   b.j0 = max(0, min(b.j0, W - 1));
   b.j1 = max(0, min(b.j1, W - 1));
   b.i0 = max(0, min(b.i0, H - 1));

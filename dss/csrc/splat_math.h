@@ -259,6 +259,34 @@ DSS_SPLAT_FN int vis_window_runs(int64_t window) { return (int)((2 * window + 1)
 DSS_SPLAT_FN int vis_partial_count(int64_t window) { return 8 + (int)(2 * window + 1) - vis_window_runs(window); }
 DSS_SPLAT_FN int vis_partial(int64_t c, int mw) { return c < mw ? (int)(c & 7) : 8 + (int)(c - mw); }
 
+// A splat's pixel box before tightening, as reference.bbox() computes it: the extent (rx, ry)
+// around the centre (u, v) (packed fields 0, 1, 7, 8) rounded outwards in float32 (floor, ceil),
+// widened by a pixel each way, then clamped to the image. Columns j0..j1, rows i0..i1; empty
+// (j0 > j1 or i0 > i1) cannot happen after the clamps, but a box wholly off screen collapses onto
+// the border (the caller tests the splat's validity and tighten_box decides). The comparisons are
+// std::max / std::min's, so that the CPU's loop over a block of splats vectorises them.
+struct Box {
+  int j0, j1, i0, i1;
+};
+
+DSS_SPLAT_FN float clamp_to(float x, float lo, float hi) {
+  const float y = (x < lo) ? lo : x;  // std::max(x, lo)
+  return (hi < y) ? hi : y;           // std::min(y, hi)
+}
+
+DSS_SPLAT_FN Box splat_box(float u, float v, float rx, float ry, int H, int W) {
+  const float j0 = clamp_to(floorf(u - rx - 0.5f), -1.f, (float)W) - 1.f;
+  const float j1 = clamp_to(ceilf(u + rx - 0.5f), -1.f, (float)W) + 1.f;
+  const float i0 = clamp_to(floorf(v - ry - 0.5f), -1.f, (float)H) - 1.f;
+  const float i1 = clamp_to(ceilf(v + ry - 0.5f), -1.f, (float)H) + 1.f;
+  Box b;
+  b.j0 = (int)clamp_to(j0, 0.f, (float)(W - 1));
+  b.j1 = (int)clamp_to(j1, 0.f, (float)(W - 1));
+  b.i0 = (int)clamp_to(i0, 0.f, (float)(H - 1));
+  b.i1 = (int)clamp_to(i1, 0.f, (float)(H - 1));
+  return b;
+}
+
 // Shrinks a splat's pixel box [j0, j1] x [i0, i1] (the reference's bbox(), one to two rows and
 // columns of margin on each side) by the rows and columns at its edges that cannot hold a pixel
 // passing the cutoff test (0.5 q <= cutoff, q = quad() in float32 at pixel centres): the bins
