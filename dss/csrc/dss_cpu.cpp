@@ -264,9 +264,9 @@ inline int insert_fragment(int32_t* pi, float* pd, float* pr, int c, int64_t K, 
 }
 
 // The AVX2 twin of dss_splat::splat_exp (splat_math.h): the same float32 operations lane for lane
-// in the same order, so the vector and scalar paths give the same bits. It replaces glibc's expf,
-// a call per inserted fragment (about 0.8 of the rasteriser's 10 ms at 20K points), by a vector
-// per tile row.
+// in the same order, so the vector and scalar paths give the same bits. It replaced glibc's expf,
+// a call per inserted fragment (about 0.8 of the rasteriser's 10 ms at 20K points); the tile loop
+// now takes it for 8 list slots at a time once a tile's lists are complete.
 #ifdef DSS_HAVE_AVX2
 DSS_AVX2 inline __m256 splat_exp_avx2(__m256 x) {
   using namespace dss_splat::splat_exp_c;
@@ -312,7 +312,9 @@ DSS_AVX2 void stream_bytes(void* dst, const void* src, size_t n) {
 // through a lane permutation, and the K slots are written back. The same list as
 // insert_fragment's, since a list is sorted and "sorts before" holds for a suffix of it; one
 // mispredicted loop exit per insertion fewer (the loop ran 0-4 times, unpredictably).
-// pi/pd/pr: the pixel's K slots, readable 8 values on (the tile lists' padding).
+// pi/pd: the pixel's K index and depth slots; pr/pn: two values carried along with each entry
+// (r and nv for the new one; the tile loop's -q/2 and splat norm). Each is readable 8 values on
+// (the tile lists' padding).
 template <int64_t KC>
 DSS_AVX2 inline int insert_fragment_avx2(int32_t* pi, float* pd, float* pr, float* pn, int c, int64_t Krt, int32_t k,
                                          float zk, float r, float nv) {
@@ -376,8 +378,10 @@ DSS_AVX2 inline unsigned fragment_gate(__m256 q, __m256 vcut, __m256 vz, __m256i
 // the top-K gate (the pixel's list is not full, or the fragment sorts before its last entry) for
 // 8 or 16 pixels at once, so only fragments that enter a list reach a branch. The gate is kept per
 // pixel in three planes (open, the last entry's depth and index). The lists equal the scalar
-// loop's bit for bit: a list's content does not depend on the order fragments arrive in.
-// li/ld/lr: (256, K) per-pixel lists, cnt: (256,) counts, all of the tile.
+// loop's bit for bit: a list's content does not depend on the order fragments arrive in, and rho
+// comes from the scalar loop's operations (norm times splat_exp of -q/2), only later.
+// li/ld/lr: (256, K) per-pixel lists, cnt: (256,) counts, all of the tile; lr holds -q/2 while
+// the fragments are inserted and rho on return.
 template <int64_t KC>
 DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int tj0, int tj1,
                                   int64_t Krt, float cutoff, int32_t* li, float* ld, float* lr, int* cnt) {

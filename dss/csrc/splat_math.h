@@ -261,10 +261,11 @@ DSS_SPLAT_FN int vis_partial(int64_t c, int mw) { return c < mw ? (int)(c & 7) :
 
 // A splat's pixel box before tightening, as reference.bbox() computes it: the extent (rx, ry)
 // around the centre (u, v) (packed fields 0, 1, 7, 8) rounded outwards in float32 (floor, ceil),
-// widened by a pixel each way, then clamped to the image. Columns j0..j1, rows i0..i1; empty
-// (j0 > j1 or i0 > i1) cannot happen after the clamps, but a box wholly off screen collapses onto
-// the border (the caller tests the splat's validity and tighten_box decides). The comparisons are
-// std::max / std::min's, so that the CPU's loop over a block of splats vectorises them.
+// widened by a pixel each way, then clamped to the image: columns j0..j1, rows i0..i1. A box
+// wholly off screen collapses onto the border; the callers test the splat's validity, j0 <= j1
+// and i0 <= i1, and tighten_box then drops the rows and columns the cutoff ellipse misses. The
+// comparisons are std::max's and std::min's, so that the CPU's loop over a block of splats
+// vectorises them.
 struct Box {
   int j0, j1, i0, i1;
 };
