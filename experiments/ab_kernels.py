@@ -143,8 +143,9 @@ def run(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--kernel", choices=KERNELS, default="visibility_backward")
     ap.add_argument("--base", required=True,
-                    help="git revision whose dss_cpu.cpp is the baseline, or 'scalar': the working tree's own "
-                         "kernel with its AVX2 paths switched off (set_vector_path(False))")
+                    help="git revision whose dss_cpu.cpp is the baseline, or 'scalar' / 'avx2': the working "
+                         "tree's own kernel with its vector paths off (set_vector_level(0)) / with the AVX2 "
+                         "paths only (set_vector_level(1), no AVX-512)")
     ap.add_argument("--kind", choices=("position", "normal"), default="position")
     ap.add_argument("--points", type=int, default=20000)
     ap.add_argument("--views", type=int, default=12)
@@ -173,13 +174,14 @@ def run(argv=None) -> dict:
             raise SystemExit("--window needs --kernel visibility_backward and a window >= 0")
         call_args[VIS_WINDOW_ARG] = args.window
     work_text = (REPO / SOURCE).read_text()
-    sources = {"base": work_text if args.base == "scalar" else git_source(args.base), "work": work_text}
+    own = {"scalar": 0, "avx2": 1}.get(args.base)  # the working tree at a lower vector level
+    sources = {"base": work_text if own is not None else git_source(args.base), "work": work_text}
     times: dict = {k: [] for k in sources}
     with tempfile.TemporaryDirectory() as tmp:
-        headers = {"base": None if args.base == "scalar" else git_headers(args.base), "work": None}
+        headers = {"base": None if own is not None else git_headers(args.base), "work": None}
         mods = {k: build(f"dss_ab_{k}", text, Path(tmp), headers[k]) for k, text in sources.items()}
-        if args.base == "scalar":
-            mods["base"].set_vector_path(False)
+        if own is not None:
+            mods["base"].set_vector_level(own)
         junk = torch.zeros(max(args.evict_mb, 0) << 18)  # float32: 2^18 per MB
         fns = {k: getattr(mod, args.kernel) for k, mod in mods.items()}
         mod_args = {k: accepted_args(fn, call_args) for k, fn in fns.items()}
@@ -192,7 +194,7 @@ def run(argv=None) -> dict:
                 del out
     med = {k: statistics.median(v[args.skip:]) for k, v in times.items()}
     result = {"kernel": args.kernel, "base": args.base,
-              "base_commit": None if args.base == "scalar" else git_short(args.base),  # "HEAD" resolved
+              "base_commit": None if own is not None else git_short(args.base),  # "HEAD" resolved
               "kind": args.kind, "points": args.points,
               "window": call_args[VIS_WINDOW_ARG] if args.kernel == "visibility_backward" else None,
               "views": args.views, "image_size": args.image_size, "threads": args.threads,

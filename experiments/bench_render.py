@@ -176,9 +176,12 @@ def machine_info() -> dict:
         pass
     from dss import _ext
 
-    _ext.load_cpu()
+    mod = _ext.load_cpu()
+    level = mod.vector_level() if mod is not None and hasattr(mod, "vector_level") else None
     return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__,
-            "kernel_openmp": _ext.openmp_enabled()}
+            "kernel_openmp": _ext.openmp_enabled(),
+            # the vector paths the C++ kernels take (dss_cpu.cpp g_vector_level)
+            "kernel_vector_isa": {0: "scalar", 1: "avx2", 2: "avx512"}.get(level)}
 
 
 def main(argv=None) -> int:

@@ -73,20 +73,39 @@ def front_view_run(start: torch.Tensor, target: torch.Tensor, shading="mask", **
     return opt.run()
 
 
-def _cpu_has_avx2() -> bool:
+def _cpu_flags() -> set[str]:
     import platform
 
     if platform.machine() not in ("x86_64", "AMD64"):
-        return False
+        return set()
     try:
         with open("/proc/cpuinfo") as f:
-            return " avx2" in f.read()
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
     except OSError:
-        return False
+        pass
+    return set()
+
+
+AVX512_FLAGS = {"avx512f", "avx512vl", "avx512dq", "avx512bw"}  # what the kernels' AVX-512 path needs
 
 
 def skip_without_vector_path() -> None:
     """Skip a vector-vs-scalar kernel test where the C++ module has no AVX2 path, but fail where
     the CPU has AVX2 and the build lacks the path (that would hide the path from every test)."""
-    assert not _cpu_has_avx2(), "this CPU has AVX2 but the kernel was built without the vector path"
+    assert "avx2" not in _cpu_flags(), "this CPU has AVX2 but the kernel was built without the vector path"
     pytest.skip("no AVX2 on this CPU: the scalar path is the only one")
+
+
+def vector_levels(mod) -> list[int]:
+    """The kernels' vector levels (1 AVX2, 2 AVX-512) this CPU has, to compare with level 0 (the
+    scalar loops). Fails where the CPU has a level's instructions and the build does not take them
+    (that would hide the path from every test); skips where the CPU has no vector path at all."""
+    top = mod.max_vector_level()
+    flags = _cpu_flags()
+    assert top >= 1 or "avx2" not in flags, "this CPU has AVX2 but the kernel was built without the vector path"
+    assert top >= 2 or not AVX512_FLAGS <= flags, "this CPU has AVX-512 but the kernel does not take its path"
+    if top == 0:
+        pytest.skip("no AVX2 on this CPU: the scalar path is the only one")
+    return list(range(1, top + 1))

@@ -2,7 +2,7 @@
 
 import pytest
 import torch
-from scenes import axis_camera, random_scene, skip_without_vector_path
+from scenes import axis_camera, random_scene, skip_without_vector_path, vector_levels
 
 from dss.render import RenderSettings, render
 
@@ -535,22 +535,24 @@ def test_float64_inputs_render_and_differentiate_on_both_backends(cpp_backend):
 
 @pytest.mark.parametrize(("K", "C", "window"), [(5, 3, 4), (5, 1, 4), (3, 3, 7), (8, 2, 8), (5, 3, 12), (2, 1, 5)])
 def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend):
-    """The AVX2 evaluation of the dss rule (8 pixels of a window row per vector, every case
-    computed in every lane) gives exactly the scalar evaluation's gradient: the same float32
-    operations per lane and the contributions added in the same partial sums in the same order
-    (dss/csrc/splat_math.h vis_partial: lane l of every run into partial l). The parameters
-    cover the compiled (K, C) variants and the run-time one, windows whose rows are runs of 8
-    plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1), and points near and
-    beyond the image border (runs partly off the image use masked loads). Windows of 9 to 15
-    columns wholly on the image (most points here) take the chunked walk across row ends
-    (VisFlatPlan), whose lanes are moved to their columns' partials; the others the row walk.
-    Narrower windows take the scalar path (nothing to compare)."""
+    """Each vector evaluation of the dss rule (every case computed in every lane) gives exactly
+    the scalar evaluation's gradient: the same float32 operations per lane and the contributions
+    added in the same partial sums in the same order (dss/csrc/splat_math.h vis_partial: lane l
+    of every run into partial l). Level 1 (AVX2) takes 8 pixels per vector, level 2 (AVX-512,
+    where the CPU has it) 16 pixels of an interior window of 9 to 15 columns, running over up
+    to 3 rows. The parameters cover the compiled (K, C) variants and the run-time one, windows
+    whose rows are runs of 8 plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1;
+    for 16 lanes, 4: 5 chunks + 1 pixel, 5: 7 chunks + a chunk of 9, 7: 14 chunks + 1 pixel),
+    and points near and beyond the image border (runs partly off the image use masked loads).
+    Windows of 9 to 15 columns wholly on the image (most points here) take the chunked walks
+    across row ends (VisFlatPlan, VisFlatPlan16), whose lanes are moved to their columns'
+    partials; the others the AVX2 row walk. Narrower windows take the scalar path (nothing to
+    compare)."""
     from dss import _ext
     from dss.splats import tangent_planes
 
     mod = _ext.load_cpu()
-    if not mod.vector_path_available():
-        skip_without_vector_path()
+    levels = vector_levels(mod)
     pts, nrm, cams, sigma, _ = random_scene(K * 10 + C, n=1200, views=3, size=(48, 64))
     pts = pts * 1.4  # some splats off the image, some straddling its border
     out = render(pts, nrm, cams, RenderSettings(window=4, spatial_sort=False), sigma=sigma, backend=cpp_backend)
@@ -564,12 +566,37 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend)
     grad = torch.randn(images.shape, generator=g) * (torch.rand(images.shape[:-1] + (1,), generator=g) > 0.2)
     args = (packed, attrs, idx, depth, rho, images, grad.contiguous(), cams.R.float(), cams.focal.float(),
             cams.principal.float(), bg, planes, window, 1, 3.0, 0.05, 1e-6, 0)
-    before = mod.set_vector_path(True)
+    before = mod.set_vector_level(0)
     try:
-        g_vec = mod.visibility_backward(*args)
-        mod.set_vector_path(False)
         g_scalar = mod.visibility_backward(*args)
+        g_vec = {}
+        for level in levels:
+            mod.set_vector_level(level)
+            assert mod.vector_level() == level
+            g_vec[level] = mod.visibility_backward(*args)
     finally:
-        mod.set_vector_path(before)
+        mod.set_vector_level(before)
     assert g_scalar.abs().max() > 0
-    assert torch.equal(g_vec, g_scalar), f"{(g_vec != g_scalar).any(1).sum().item()} points differ"
+    for level, g in g_vec.items():
+        assert torch.equal(g, g_scalar), f"level {level}: {(g != g_scalar).any(1).sum().item()} points differ"
+
+
+def test_vector_level_is_set_checked_and_capped(cpp_backend):
+    """set_vector_level(0-2) picks the highest vector path the kernels may take (0 scalar, 1 AVX2,
+    2 AVX-512), capped at what this CPU and build have; set_vector_path(False / True) is level 0 /
+    every level; other values are refused."""
+    from dss import _ext
+
+    mod = _ext.load_cpu()
+    top = mod.max_vector_level()
+    before = mod.set_vector_level(2)
+    try:
+        assert mod.vector_level() == top
+        assert mod.set_vector_level(1) == 2 and mod.vector_level() == min(1, top)
+        assert mod.set_vector_path(False) is True and mod.vector_level() == 0
+        assert mod.set_vector_path(True) is False and mod.vector_level() == top
+        with pytest.raises(RuntimeError, match="vector level must be 0"):
+            mod.set_vector_level(3)
+        assert mod.vector_level() == top
+    finally:
+        mod.set_vector_level(before)

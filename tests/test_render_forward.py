@@ -236,6 +236,44 @@ def test_reused_output_blocks_are_fully_rewritten(cpp_backend):
     assert _ext.empty_cache() > 0 and _ext.empty_cache() == 0  # parked again, then released
 
 
+def _mapping_flags(address: int) -> list[str] | None:
+    """The VmFlags of the mapping of this process that holds ``address`` (Linux), else None."""
+    try:
+        lines = open("/proc/self/smaps").read().splitlines()
+    except OSError:
+        return None
+    inside = False
+    for line in lines:
+        head = line.split()[0] if line else ""
+        if "-" in head and not head.endswith(":"):
+            lo, hi = (int(x, 16) for x in head.split("-"))
+            inside = lo <= address < hi
+        elif inside and line.startswith("VmFlags:"):
+            return line.split()[1:]
+    return None
+
+
+def test_large_output_blocks_are_marked_for_huge_pages(cpp_backend):
+    """Output blocks of 2 MB or more (the top-K cache: 2.6 MB per array here) start on a 2 MB
+    boundary and, on Linux, lie in a range advised for transparent huge pages (VmFlags "hg"), so
+    that scattered reads of the cache and the visibility record take few TLB entries."""
+    import sys
+
+    from dss import _ext
+    from dss.render import rasterize
+    from dss.splats import project_splats
+
+    _ext.empty_cache()  # a fresh block, not one parked before this code
+    pts, nrm, cams, sigma, _ = random_scene(2, n=500, views=2, size=(256, 256))
+    frags = rasterize(project_splats(pts, nrm, cams, sigma, 1.0), cams.image_size, 5, 1.0, 0.05, cpp_backend)[0]
+    assert frags.idx.numel() * 4 >= 2 << 20
+    for t in (frags.idx, frags.depth, frags.rho):
+        assert t.data_ptr() % (2 << 20) == 0
+        if sys.platform.startswith("linux"):
+            flags = _mapping_flags(t.data_ptr())
+            assert flags is not None and "hg" in flags, flags
+
+
 def test_sun_shading_is_the_camera_space_diffuse_term():
     """SunLights turns the lights into world space (one product for all views); the result is
     the definition: ambient + max(0, (R_v n) . d_l) per light, coloured, for every view."""

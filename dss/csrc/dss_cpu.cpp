@@ -22,6 +22,8 @@
 #include <type_traits>
 #include <vector>
 
+#include <sys/mman.h>
+
 #include "splat_math.h"
 // x86-64 builds compile AVX2 versions of the hot loops (function target attributes, so the rest of
 // the file stays baseline x86-64) and take them at run time when the CPU has AVX2.
@@ -153,6 +155,43 @@ DSS_AVX2 void scan_boxes_avx2(const float* P, int n, int H, int W, float cutoff,
 // (vis_state evaluates it inline, with the square root only where the clamp applies.)
 constexpr float kMaxSlope = 3.f;
 
+// Memory for large buffers that the kernels read in scattered order (the visibility record, the
+// pooled output blocks): 2 MB aligned and marked for transparent huge pages (Linux with THP in
+// "madvise" mode, the common default, backs only marked ranges with them), so that a window's
+// 29 planes or a visit list's scattered cache rows cost a few TLB entries instead of one per
+// 4 KB page. Elsewhere it is a plain aligned allocation. Free with std::free.
+constexpr size_t kHugePage = size_t(2) << 20;
+void* huge_alloc(size_t bytes) {
+  if (bytes < kHugePage) {
+    void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
+    return p;
+  }
+  const size_t n = (bytes + kHugePage - 1) / kHugePage * kHugePage;
+  void* p = std::aligned_alloc(kHugePage, n);
+#ifdef MADV_HUGEPAGE
+  if (p != nullptr) madvise(p, n, MADV_HUGEPAGE);
+#endif
+  return p;
+}
+
+// A grow-only buffer of T from huge_alloc (contents kept only up to the old size on growth:
+// callers overwrite what they read).
+template <class T>
+struct HugeBuffer {
+  T* ptr = nullptr;
+  size_t cap = 0;
+  ~HugeBuffer() { std::free(ptr); }
+  T* reserve(size_t n) {
+    if (n > cap) {
+      std::free(ptr);
+      ptr = static_cast<T*>(huge_alloc(n * sizeof(T)));
+      TORCH_CHECK(ptr != nullptr, "dss: out of memory allocating ", n * sizeof(T), " bytes");
+      cap = n;
+    }
+    return ptr;
+  }
+};
+
 // Large outputs (the top-K cache is 47 MB at 12 views of 256x256) come from a block cache: a
 // fresh allocation of that size is a fresh mmap, whose page faults and kernel zeroing cost more
 // than filling it (14 vs 2 ms for the cache at 20K points on 2 cores, every render). A tensor
@@ -188,7 +227,7 @@ torch::Tensor pooled_empty(at::IntArrayRef sizes, at::ScalarType dtype) {
     }
   }
   if (ptr == nullptr) {
-    ptr = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
+    ptr = huge_alloc(bytes);
     TORCH_CHECK(ptr != nullptr, "dss: out of memory allocating ", bytes, " bytes");
   }
   auto park = [bytes](void* p) {
@@ -217,9 +256,11 @@ int64_t empty_cache() {
   return released;
 }
 
-// Whether the kernels take their AVX2 paths (CPUs with AVX2; set_vector_path(false) forces the
-// scalar ones, for tests and comparisons). Both paths give the same bits.
-std::atomic<bool> g_vector_path{true};
+// Which vector paths the kernels take: 0 the baseline (scalar) loops, 1 the AVX2 paths, 2 also
+// the AVX-512 one (the visibility backward's interior windows, 16 pixels per vector), each level
+// where both this build and the CPU have it. set_vector_level / set_vector_path force a lower
+// level, for tests and comparisons: every level gives the same bits.
+std::atomic<int> g_vector_level{2};
 bool vector_path_available() {
 #ifdef DSS_HAVE_AVX2
   static const bool has = __builtin_cpu_supports("avx2");
@@ -228,7 +269,22 @@ bool vector_path_available() {
   return false;
 #endif
 }
-bool use_vector_path() { return vector_path_available() && g_vector_path.load(); }
+bool avx512_available() {
+#ifdef DSS_HAVE_AVX2
+  static const bool has = vector_path_available() && __builtin_cpu_supports("avx512f") &&
+                          __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512dq") &&
+                          __builtin_cpu_supports("avx512bw");
+  return has;
+#else
+  return false;
+#endif
+}
+// The highest level this build and CPU have.
+int64_t max_vector_level() { return avx512_available() ? 2 : vector_path_available() ? 1 : 0; }
+// The level the kernels take now.
+int64_t vector_level() { return std::min<int64_t>(g_vector_level.load(), max_vector_level()); }
+bool use_vector_path() { return vector_level() >= 1; }
+bool use_avx512() { return vector_level() >= 2; }
 
 // Run fn(item) for item in [0, n) on all intra-op threads, items handed out dynamically.
 template <typename F>
@@ -482,8 +538,14 @@ DSS_AVX2 void tile_fragments_avx2(const Frag* bin, int64_t n_bin, int ti0, int t
 #endif
 }  // namespace
 
-// Enables / disables the vector (AVX2) paths; returns whether they were enabled before.
-bool set_vector_path(bool on) { return g_vector_path.exchange(on); }
+// Enables (every level the CPU has) / disables the vector paths; returns whether they were on.
+bool set_vector_path(bool on) { return g_vector_level.exchange(on ? 2 : 0) > 0; }
+// Sets the highest vector level the kernels may take (0-2, see g_vector_level); returns the
+// previous setting.
+int64_t set_vector_level(int64_t level) {
+  TORCH_CHECK(level >= 0 && level <= 2, "vector level must be 0 (scalar), 1 (AVX2) or 2 (AVX-512), got ", level);
+  return g_vector_level.exchange((int)level);
+}
 
 // Forward: top-K cache per pixel and (optionally) the blended image.
 // packed (V,N,10) f32, attrs (V,N,C) f32 or empty, background (C) f32.
@@ -1304,6 +1366,334 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
                         part[F.n - 1]);
 }
 
+// The dss rule over an interior window of 9 to 15 columns in 16 lanes (AVX-512, taken where the
+// CPU has it): the window's pixels in row-major order, 16 per vector, whatever rows they are in
+// (a 9 x 9 window is 5 chunks and one pixel, where the 8-lane walk takes 10 chunks and one pixel).
+// VisLanes16::eval is VisLanes::eval with 16 lanes and mask registers: the same float32 operations
+// in the same order per lane, every case computed in every lane and selected by masks, lanes that
+// do not contribute holding +0. The lanes' contributions go to the same partial sums in the same
+// order (row-major within each column's partial), so the result is the scalar walk's bit for bit
+// (tests/test_render_backward.py compares every vector level with the scalar path). 1.15x on the
+// 20K position step's visibility backward (2 cores, Zen 5) against the 8-lane walk.
+#define DSS_AVX512 __attribute__((target("avx2,avx512f,avx512vl,avx512dq,avx512bw")))
+struct VisChunkOut16 {
+  __m512 x1, y1, x2, y2, z;
+  bool any;
+};
+
+// A chunk of 16 consecutive pixels of a window in row-major order: up to 3 runs, each within one
+// row (16 pixels span at most 3 rows of 9 or more), lane l of run s at offset base[s] + l, so a
+// plane is read with one masked load per run (masked-off lanes are not read).
+struct VisAddr16 {
+  int nseg;
+  int64_t base[3];
+  __mmask16 seg[3];
+  DSS_AVX512 inline __m512 ld(const float* plane) const {
+    __m512 v = _mm512_maskz_loadu_ps(seg[0], plane + base[0]);
+    v = _mm512_mask_loadu_ps(v, seg[1], plane + base[1]);
+    if (nseg > 2) v = _mm512_mask_loadu_ps(v, seg[2], plane + base[2]);
+    return v;
+  }
+  DSS_AVX512 inline __m512i ldi(const int32_t* plane) const {
+    __m512i v = _mm512_maskz_loadu_epi32(seg[0], plane + base[0]);
+    v = _mm512_mask_loadu_epi32(v, seg[1], plane + base[1]);
+    if (nseg > 2) v = _mm512_mask_loadu_epi32(v, seg[2], plane + base[2]);
+    return v;
+  }
+};
+
+template <int64_t KC, int64_t CC>
+struct VisLanes16 {
+  using Rec = VisRecord<true, KC, CC>;
+  const Rec* R;
+  int64_t K, C;
+  __m512i vk;
+  __m512 vu, vv, vz, vnk, vzf, vX, vY, vslope, vslope2, pl0, pl1, pl2, s2, s3, s4;
+  __m512 vmerge, veps, vcx, vcy, vinvf, v2cut;
+  __m512 wk[16];
+
+  DSS_AVX512 void init(const Rec& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q) {
+    R = &rec;
+    K = KC > 0 ? KC : Krt;
+    C = CC > 0 ? CC : Crt;
+    vk = _mm512_set1_epi32(P.k);
+    vu = _mm512_set1_ps(P.u), vv = _mm512_set1_ps(P.v), vz = _mm512_set1_ps(P.z), vnk = _mm512_set1_ps(P.nk);
+    vzf = _mm512_set1_ps(P.z_f), vX = _mm512_set1_ps(P.X), vY = _mm512_set1_ps(P.Y);
+    vslope = _mm512_set1_ps(P.slope), vslope2 = _mm512_set1_ps(P.slope * P.slope);
+    pl0 = _mm512_set1_ps(P.pl[0]), pl1 = _mm512_set1_ps(P.pl[1]), pl2 = _mm512_set1_ps(P.pl[2]);
+    s2 = _mm512_set1_ps(P.s[2]), s3 = _mm512_set1_ps(P.s[3]), s4 = _mm512_set1_ps(P.s[4]);
+    vmerge = _mm512_set1_ps(Q.merge), veps = _mm512_set1_ps(Q.eps), vcx = _mm512_set1_ps(Q.cx);
+    vcy = _mm512_set1_ps(Q.cy), vinvf = _mm512_set1_ps(Q.inv_f), v2cut = _mm512_set1_ps(2.f * Q.cutoff);
+    for (int64_t ch = 0; ch < C; ++ch) wk[ch] = _mm512_set1_ps(P.wk[ch]);
+  }
+
+  // VisLanes::add_entries_within: a lane's sums stop growing at its first entry beyond lim.
+  DSS_AVX512 void add_entries_within(const __m512i* ie, const __m512* de, const __m512* re, const __m512* ge,
+                                     int64_t e0, __mmask16 alive, __m512 lim, __m512& den, __m512& gn) const {
+    const __m512i minus1 = _mm512_set1_epi32(-1);
+    for (int64_t e = e0; e < K; ++e) {
+      alive = alive & _mm512_cmpgt_epi32_mask(ie[e], minus1) & _mm512_cmp_ps_mask(de[e], lim, _CMP_LE_OQ);
+      den = _mm512_mask_add_ps(den, alive, den, re[e]);
+      gn = _mm512_mask_add_ps(gn, alive, gn, _mm512_mul_ps(re[e], ge[e]));
+    }
+  }
+
+  // The 16 evaluations of one chunk (lanes in oki); (px, py) the pixel centres. Comments on the
+  // cases: VisLanes::eval and vis_state.
+  DSS_AVX512 void eval(const VisAddr16& a, __mmask16 oki, __m512 px, __m512 vpy, VisChunkOut16& out) const {
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
+    out.any = false;
+    const __mmask16 m = _mm512_mask_cmp_ps_mask(oki, a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ);
+    if (m == 0) return;
+    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), r2 = a.ld(R->plane(Rec::kGn));
+    const __m512 d0m = _mm512_add_ps(d0, vmerge);
+    __m512i ie[8];
+    __m512 de[8], re[8], ge[8];
+    __mmask16 found = 0, ek0 = 0;
+    __m512 pdk = zero, prk = zero, pgk = zero;
+    for (int64_t e = 0; e < K; ++e) {
+      ie[e] = a.ldi(R->idx_plane(e));
+      de[e] = a.ld(R->plane(R->fDep(e)));
+      re[e] = a.ld(R->plane(R->fRho(e)));
+      ge[e] = a.ld(R->plane(R->fGw(e)));
+      const __mmask16 me = _mm512_cmpeq_epi32_mask(ie[e], vk);
+      if (e == 0) ek0 = me;
+      found |= me;
+      pdk = _mm512_mask_blend_ps(me, pdk, de[e]);
+      prk = _mm512_mask_blend_ps(me, prk, re[e]);
+      pgk = _mm512_mask_blend_ps(me, pgk, ge[e]);
+    }
+    const __mmask16 kvis = found & _mm512_cmp_ps_mask(pdk, d0m, _CMP_LE_OQ);
+    const __mmask16 empty = _mm512_cmplt_epi32_mask(ie[0], _mm512_setzero_si512());
+    __m512 den = zero, gn = zero, zp = vz;
+    __mmask16 kase1 = 0;
+    const __m512 dxp = _mm512_sub_ps(px, vu), dyp = _mm512_sub_ps(vpy, vv);
+    if (m & kvis) {
+      __m512 den_a = _mm512_sub_ps(r1, prk);
+      const __m512 gn_a = _mm512_sub_ps(r2, _mm512_mul_ps(prk, pgk));
+      den_a = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(den_a, zero, _CMP_GT_OQ), den_a);
+      __m512 den_b = zero, gn_b = zero;
+      if (K > 1) add_entries_within(ie, de, re, ge, 1, (__mmask16)0xFFFF, _mm512_add_ps(de[1], vmerge), den_b, gn_b);
+      den = _mm512_mask_blend_ps(ek0, den_a, den_b);
+      gn = _mm512_mask_blend_ps(ek0, gn_a, gn_b);
+    }
+    if (m & ~kvis) {
+      const __m512 iz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(pl0, px), _mm512_mul_ps(pl1, vpy)), pl2);
+      __m512 zq = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(iz, zero, _CMP_GT_OQ), vz, _mm512_div_ps(one, iz));
+      const __m512 d2 = _mm512_add_ps(_mm512_mul_ps(dxp, dxp), _mm512_mul_ps(dyp, dyp));
+      const __m512 dz = _mm512_sub_ps(zq, vz);
+      const __mmask16 cl = _mm512_cmp_ps_mask(_mm512_mul_ps(dz, dz), _mm512_mul_ps(vslope2, d2), _CMP_GT_OQ);
+      if (cl) {
+        const __m512 dmax = _mm512_mul_ps(vslope, _mm512_sqrt_ps(d2));
+        const __m512 lo = _mm512_sub_ps(vz, dmax), hi = _mm512_add_ps(vz, dmax);
+        const __m512 mx = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(zq, lo, _CMP_LT_OQ), zq, lo);
+        const __m512 mn = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(hi, mx, _CMP_LT_OQ), mx, hi);
+        zq = _mm512_mask_blend_ps(cl, zq, mn);
+      }
+      const __mmask16 k1 = ~empty & _mm512_cmp_ps_mask(zq, d0m, _CMP_NLE_UQ);
+      __m512 gw = zero;
+      for (int64_t ch = 0; ch < C; ++ch) gw = _mm512_add_ps(gw, _mm512_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
+      __m512 den_n = vnk, gn_n = _mm512_mul_ps(vnk, gw);
+      const __mmask16 mall = k1 | _mm512_cmp_ps_mask(zq, d0, _CMP_GE_OQ);
+      den_n = _mm512_mask_add_ps(den_n, mall, den_n, r1);
+      gn_n = _mm512_mask_add_ps(gn_n, mall, gn_n, r2);
+      const __mmask16 alive = ~(mall | empty);
+      if (alive) add_entries_within(ie, de, re, ge, 0, alive, _mm512_add_ps(zq, vmerge), den_n, gn_n);
+      den = _mm512_mask_blend_ps(kvis, den_n, den);
+      gn = _mm512_mask_blend_ps(kvis, gn_n, gn);
+      zp = zq;
+      kase1 = k1;
+    }
+    const __m512 gsel = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(den, zero, _CMP_GT_OQ), a.ld(R->plane(Rec::kGb)),
+                                             _mm512_div_ps(gn, den));
+    const __m512 gd = _mm512_sub_ps(gsel, a.ld(R->plane(Rec::kGi)));
+    const __mmask16 act = m & _mm512_cmp_ps_mask(gd, zero, _CMP_LT_OQ);
+    __mmask16 act_v = act & kvis;
+    const __mmask16 act_n = act & ~kvis;
+    __m512 c[2][2] = {{zero, zero}, {zero, zero}}, b[3] = {zero, zero, zero};
+    if (act_v) {
+      const __m512 sd = _mm512_sqrt_ps(_mm512_add_ps(_mm512_mul_ps(dxp, dxp), _mm512_mul_ps(dyp, dyp)));
+      act_v = act_v & _mm512_cmp_ps_mask(sd, _mm512_set1_ps(1e-6f), _CMP_NLT_UQ);
+      const __m512 inv_sd = _mm512_div_ps(one, sd);
+      const __m512 ux = _mm512_mul_ps(dxp, inv_sd), uy = _mm512_mul_ps(dyp, inv_sd);
+      const __m512 qu = _mm512_add_ps(
+          _mm512_add_ps(_mm512_mul_ps(_mm512_mul_ps(s2, ux), ux), _mm512_mul_ps(_mm512_mul_ps(s3, ux), uy)),
+          _mm512_mul_ps(_mm512_mul_ps(s4, uy), uy));
+      const __m512 tiny = _mm512_set1_ps(1e-20f);
+      const __m512 qm = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(qu, tiny, _CMP_LT_OQ), qu, tiny);
+      const __m512 rr = _mm512_sqrt_ps(_mm512_div_ps(v2cut, qm));
+      __m512 t = _mm512_sub_ps(rr, sd);
+      t = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(t, zero, _CMP_LT_OQ), t, zero);
+      const __m512 steps[2] = {_mm512_xor_ps(t, _mm512_set1_ps(-0.f)), _mm512_add_ps(rr, sd)};
+      for (int mm = 0; mm < 2; ++mm) {
+        const __m512 mx = _mm512_mul_ps(_mm512_mul_ps(steps[mm], ux), vzf);
+        const __m512 my = _mm512_mul_ps(_mm512_mul_ps(steps[mm], uy), vzf);
+        const __m512 coef =
+            _mm512_div_ps(gd, _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(mx, mx), _mm512_mul_ps(my, my)), veps));
+        c[mm][0] = _mm512_mul_ps(coef, mx);
+        c[mm][1] = _mm512_mul_ps(coef, my);
+      }
+    }
+    if (act_n) {
+      const __m512 zt = _mm512_mask_blend_ps(kase1, zp, d0);
+      const __m512 zt_f = _mm512_mul_ps(zt, vinvf);
+      const __m512 mx = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(px, vcx), zt_f), vX);
+      const __m512 my = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(vpy, vcy), zt_f), vY);
+      const __m512 mz = _mm512_sub_ps(zt, zp);
+      const __m512 nrm = _mm512_add_ps(
+          _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(mx, mx), _mm512_mul_ps(my, my)), _mm512_mul_ps(mz, mz)), veps);
+      const __m512 coef = _mm512_div_ps(gd, nrm);
+      b[0] = _mm512_mul_ps(coef, mx);
+      b[1] = _mm512_mul_ps(coef, my);
+      b[2] = _mm512_mul_ps(coef, mz);
+    }
+    const __mmask16 act_any = act_v | act_n;
+    out.x1 = _mm512_maskz_mov_ps(act_any, _mm512_mask_blend_ps(kvis, b[0], c[0][0]));
+    out.y1 = _mm512_maskz_mov_ps(act_any, _mm512_mask_blend_ps(kvis, b[1], c[0][1]));
+    out.x2 = _mm512_maskz_mov_ps(act_v, c[1][0]);
+    out.y2 = _mm512_maskz_mov_ps(act_v, c[1][1]);
+    out.z = _mm512_maskz_mov_ps(act_n, b[2]);
+    out.any = act_any != 0;
+  }
+};
+
+// The 16-lane walk of a window of n = 2 w + 1 columns, 9 <= n <= 15: chunk c holds window pixels
+// 16 c + l (row, column below), the last chunk only the valid lanes when n * n leaves more than 2
+// pixels over (n = 11, 13), else those pixels go through eval_scalar. A column appears at most
+// twice in a chunk (16 < 2 n), so a chunk's contributions to the partials of columns 0-7 are
+// added in two rounds, the lanes where a column appears first, then those where it appears
+// again (a later row), each moved to its column's lane by perm (present where pres is set);
+// columns 8 and beyond (vis_partial's own partials) one lane at a time in lane order. Every
+// partial gets its pixels in row-major order, as on the row walk.
+struct VisFlatPlan16 {
+  static constexpr int kMaxChunks = 15;  // ceil(15 * 15 / 16)
+  int n = 0, nvec = 0, nlast = 0;  // full chunks; pixels of a last partial chunk (0: none)
+  int nseg[kMaxChunks];          // the chunk's runs (VisAddr16)
+  int64_t base[kMaxChunks][3];   // per run: offset of lane 0's address from the window's first pixel
+  __mmask16 seg[kMaxChunks][3];  // per run: its lanes
+  __mmask16 valid[kMaxChunks];   // the chunk's lanes that are window pixels
+  alignas(64) int32_t col[kMaxChunks][16], row[kMaxChunks][16];
+  alignas(64) int32_t perm[kMaxChunks][2][16];  // per round: partial lane <- chunk lane
+  __mmask8 pres[kMaxChunks][2];
+  int nextra[kMaxChunks], extra[kMaxChunks][16];
+
+  bool build(int64_t w, int64_t W) {
+    n = (int)(2 * w + 1);
+    if (n < 9 || n > 15) return false;
+    const int total = n * n;
+    nvec = total / 16;
+    const int rem = total - 16 * nvec;
+    nlast = rem > 2 ? rem : 0;  // 1 or 2 leftover pixels go through eval_scalar
+    const int nch = nvec + (nlast ? 1 : 0);
+    for (int c = 0; c < nch; ++c) {
+      nseg[c] = 0;
+      valid[c] = 0;
+      nextra[c] = 0;
+      for (int r = 0; r < 2; ++r) {
+        pres[c][r] = 0;
+        for (int k = 0; k < 16; ++k) perm[c][r][k] = 0;
+      }
+      for (int l = 0; l < 16; ++l) col[c][l] = 0, row[c][l] = 0;
+      int seen[16] = {0};
+      int prev_row = -1;
+      for (int l = 0; l < 16; ++l) {
+        const int f = 16 * c + l;
+        if (f >= total) break;
+        valid[c] |= (__mmask16)(1u << l);
+        row[c][l] = f / n;
+        col[c][l] = f % n;
+        if (row[c][l] != prev_row) {
+          base[c][nseg[c]] = (int64_t)row[c][l] * W + col[c][l] - l;
+          seg[c][nseg[c]] = 0;
+          ++nseg[c];
+          prev_row = row[c][l];
+        }
+        seg[c][nseg[c] - 1] |= (__mmask16)(1u << l);
+        if (col[c][l] < 8) {
+          const int r = seen[col[c][l]]++;
+          perm[c][r][col[c][l]] = l;
+          pres[c][r] |= (__mmask8)(1u << col[c][l]);
+        } else {
+          extra[c][nextra[c]++] = l;
+        }
+      }
+      for (int s = nseg[c]; s < 3; ++s) base[c][s] = base[c][0], seg[c][s] = 0;
+    }
+    return true;
+  }
+};
+
+// One round of a chunk's contributions x added to the double partials of columns 0-7 (acc).
+DSS_AVX512 inline void add_cols16(__m512d& acc, __m512 x, const int32_t* perm, __mmask8 pres) {
+  const __m512 p = _mm512_permutexvar_ps(_mm512_load_si512((const void*)perm), x);
+  acc = _mm512_mask_add_pd(acc, pres, acc, _mm512_cvtps_pd(_mm512_castps512_ps256(p)));
+}
+
+// The window of the point P centred on pixel (ic, jc), wholly on the image, by plan F; adds the
+// window's partial sums to acc as window_dss_avx2 does.
+template <int64_t KC, int64_t CC>
+DSS_AVX512 void window_flat_avx512(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P,
+                                   const VisConsts& Q, const VisFlatPlan16& F, int64_t W, int64_t window, int ic,
+                                   int jc, double acc[3]) {
+  VisLanes16<KC, CC> L;
+  L.init(rec, Krt, Crt, P, Q);
+  const int nq = dss_splat::vis_partial_count(window);
+  const int64_t corner = (int64_t)(ic - window) * W + (jc - window);
+  const __m512i vj0 = _mm512_set1_epi32(jc - (int)window), vi0 = _mm512_set1_epi32(ic - (int)window);
+  const __m512 half = _mm512_set1_ps(0.5f);
+  __m512d sx = _mm512_setzero_pd(), sy = sx, sz = sx;
+  double part[dss_splat::kVisPartials][3] = {};
+  VisChunkOut16 o;
+  VisAddr16 a;
+  const int nch = F.nvec + (F.nlast ? 1 : 0);
+  for (int c = 0; c < nch; ++c) {
+    const __m512 px = _mm512_add_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(vj0, _mm512_load_si512((const void*)F.col[c]))), half);
+    const __m512 py = _mm512_add_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(vi0, _mm512_load_si512((const void*)F.row[c]))), half);
+    a.nseg = F.nseg[c];
+    for (int s = 0; s < 3; ++s) a.base[s] = corner + F.base[c][s], a.seg[s] = F.seg[c][s];
+    L.eval(a, F.valid[c], px, py, o);
+    if (!o.any) continue;
+    for (int r = 0; r < 2; ++r) {
+      if (!F.pres[c][r]) continue;
+      add_cols16(sx, o.x1, F.perm[c][r], F.pres[c][r]);
+      add_cols16(sy, o.y1, F.perm[c][r], F.pres[c][r]);
+      add_cols16(sx, o.x2, F.perm[c][r], F.pres[c][r]);
+      add_cols16(sy, o.y2, F.perm[c][r], F.pres[c][r]);
+      add_cols16(sz, o.z, F.perm[c][r], F.pres[c][r]);
+    }
+    if (F.nextra[c]) {
+      alignas(64) float x1[16], y1[16], x2[16], y2[16], z[16];
+      _mm512_store_ps(x1, o.x1), _mm512_store_ps(y1, o.y1), _mm512_store_ps(x2, o.x2);
+      _mm512_store_ps(y2, o.y2), _mm512_store_ps(z, o.z);
+      for (int e = 0; e < F.nextra[c]; ++e) {
+        const int l = F.extra[c][e];
+        double* q = part[dss_splat::vis_partial(F.col[c][l], 8)];
+        q[0] += x1[l];
+        q[1] += y1[l];
+        q[0] += x2[l];
+        q[1] += y2[l];
+        q[2] += z[l];
+      }
+    }
+  }
+  // 1 or 2 leftover pixels at the window's end
+  const int total = F.n * F.n;
+  for (int f = 16 * nch; f < total; ++f) {
+    const int r = f / F.n, cc = f % F.n;
+    const int64_t p = corner + (int64_t)r * W + cc;
+    if (rec.nz(p) != 0.f)
+      eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)(jc - window + cc) + 0.5f, (float)(ic - window + r) + 0.5f,
+                          part[dss_splat::vis_partial(cc, 8)]);
+  }
+  alignas(64) double lanes[3][8];
+  _mm512_store_pd(lanes[0], sx);
+  _mm512_store_pd(lanes[1], sy);
+  _mm512_store_pd(lanes[2], sz);
+  for (int l = 0; l < 8; ++l)
+    for (int c = 0; c < 3; ++c) part[l][c] = lanes[c][l];
+  add_partials(part, nq, acc);
+}
+
 template <int64_t KC, int64_t CC>
 DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
                               int64_t H, int64_t W, int64_t window, int ic, int jc, const VisFlatPlan* flat,
@@ -1416,9 +1806,11 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 #ifdef DSS_HAVE_AVX2
   VisFlatPlan flat_plan;
   const VisFlatPlan* flat = vec && flat_plan.build(window, W) ? &flat_plan : nullptr;
+  VisFlatPlan16 flat16_plan;
+  const VisFlatPlan16* flat16 = vec && use_avx512() && flat16_plan.build(window, W) ? &flat16_plan : nullptr;
 #endif
-  static thread_local std::vector<float> rec_f;
-  static thread_local std::vector<int32_t> rec_i;
+  static thread_local HugeBuffer<float> rec_f;
+  static thread_local HugeBuffer<int32_t> rec_i;
   auto run = [&](auto layout) {
     constexpr bool kSoA = decltype(layout)::value;
     VisRecord<kSoA> rec;
@@ -1426,14 +1818,12 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     rec.K_ = K;
     if (kSoA) {
       rec.S = VisRecord<kSoA>::plane_stride(HW);
-      rec_f.resize((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
-      rec_i.resize((size_t)(rec.S * K));
-      rec.ix = rec_i.data();
+      rec.f = rec_f.reserve((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
+      rec.ix = rec_i.reserve((size_t)(rec.S * K));
     } else {
       rec.S = VisRecord<kSoA>::fields(C, K);
-      rec_f.resize((size_t)(rec.S * HW));
+      rec.f = rec_f.reserve((size_t)(rec.S * HW));
     }
-    rec.f = rec_f.data();
     for (int64_t v = 0; v < V; ++v) {
       if (!kSoA) rec.ix = const_cast<int32_t*>(I + v * HW * K);  // read only
       dynamic_for(H, 4, [&](int64_t i) {
@@ -1519,7 +1909,10 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
           bool done = false;
 #ifdef DSS_HAVE_AVX2
           if constexpr (kSoA) {
-            if (vec) {
+            if (vec && flat16 && ic - window >= 0 && ic + window < H && jc - window >= 0 && jc + window < W) {
+              window_flat_avx512<KC, CC>(R, Krt, Crt, pt, Q, *flat16, W, window, ic, jc, acc);
+              done = true;
+            } else if (vec) {
               window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, acc);
               done = true;
             }
@@ -2259,9 +2652,15 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "DSS forward rasterisation (CPU)");
   m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");
   m.def("set_vector_path", &set_vector_path,
-        "enable/disable the AVX2 paths (rasterize_forward's tile loop and write-out, visibility_backward's "
-        "dss rule, the projection's forward and backward loops, smape_sum); returns the previous setting");
+        "enable/disable the vector paths (AVX2: rasterize_forward's tile loop and write-out, visibility_backward's "
+        "dss rule, the projection's forward and backward loops, smape_sum, the sun shader's backward; AVX-512: "
+        "visibility_backward's interior windows); returns whether they were enabled");
   m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 paths");
+  m.def("set_vector_level", &set_vector_level,
+        "the highest vector level the kernels may take: 0 scalar, 1 AVX2, 2 AVX-512 (the visibility backward's "
+        "interior windows); returns the previous setting");
+  m.def("vector_level", &vector_level, "the vector level the kernels take now (0 scalar, 1 AVX2, 2 AVX-512)");
+  m.def("max_vector_level", &max_vector_level, "the highest vector level this build and CPU have");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
   m.def("project_splats_backward", &project_splats_backward, "EWA splat projection, backward (CPU)");
   m.def("tangent_planes_forward", &tangent_planes_forward, "inverse-depth tangent planes (V,N,3) (CPU)");
