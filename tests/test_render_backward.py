@@ -533,8 +533,10 @@ def test_float64_inputs_render_and_differentiate_on_both_backends(cpp_backend):
     assert (p.grad - ref).norm() <= 1e-3 * ref.norm()
 
 
-@pytest.mark.parametrize(("K", "C", "window"), [(5, 3, 4), (5, 1, 4), (3, 3, 7), (8, 2, 8), (5, 3, 12), (2, 1, 5)])
-def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend):
+@pytest.mark.parametrize(("K", "C", "window", "size"), [(5, 3, 4, (48, 64)), (5, 1, 4, (48, 64)), (3, 3, 7, (48, 64)),
+                                                         (8, 2, 8, (48, 64)), (5, 3, 12, (48, 64)),
+                                                         (2, 1, 5, (48, 64)), (5, 3, 4, (30, 10))])
+def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, size, cpp_backend):
     """Each vector evaluation of the dss rule (every case computed in every lane) gives exactly
     the scalar evaluation's gradient: the same float32 operations per lane and the contributions
     added in the same partial sums in the same order (dss/csrc/splat_math.h vis_partial: lane l
@@ -543,7 +545,8 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend)
     to 3 rows. The parameters cover the compiled (K, C) variants and the run-time one, windows
     whose rows are runs of 8 plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1;
     for 16 lanes, 4: 5 chunks + 1 pixel, 5: 7 chunks + a chunk of 9, 7: 14 chunks + 1 pixel),
-    and points near and beyond the image border (runs partly off the image use masked loads).
+    and points near and beyond the image border (runs partly off the image use masked loads);
+    an image 10 pixels wide has interior windows whose 16-lane loads start before their row.
     Windows of 9 to 15 columns wholly on the image (most points here) take the chunked walks
     across row ends (VisFlatPlan, VisFlatPlan16), whose lanes are moved to their columns'
     partials; the others the AVX2 row walk. Narrower windows take the scalar path (nothing to
@@ -553,7 +556,7 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, cpp_backend)
 
     mod = _ext.load_cpu()
     levels = vector_levels(mod)
-    pts, nrm, cams, sigma, _ = random_scene(K * 10 + C, n=1200, views=3, size=(48, 64))
+    pts, nrm, cams, sigma, _ = random_scene(K * 10 + C, n=1200, views=3, size=size)
     pts = pts * 1.4  # some splats off the image, some straddling its border
     out = render(pts, nrm, cams, RenderSettings(window=4, spatial_sort=False), sigma=sigma, backend=cpp_backend)
     packed = out.splats.packed.detach().float().contiguous()

@@ -1384,9 +1384,10 @@ struct VisChunkOut16 {
 // A chunk of 16 consecutive pixels of a window in row-major order: up to 3 runs, each within one
 // row (16 pixels span at most 3 rows of 9 or more), lane l of run s at offset base[s] + l. A
 // plane is read with one full load per run, the runs' lanes blended together: 1.08x on the whole
-// kernel against a masked load per run. A full load reads up to 15 values beyond its run, which
-// for an interior window lie on the image or in the plane's padding (VisRecord::plane_stride),
-// and lanes outside the window (a last, partial chunk) are never used.
+// kernel against a masked load per run. A full load reads up to 15 values before or after its
+// run, which lie on the image, in the padding after each plane (VisRecord::plane_stride) or in
+// the 16 values kept in front of the first; lanes outside the window (a last, partial chunk) are
+// never used.
 struct VisAddr16 {
   int nseg;
   int64_t base[3];
@@ -1822,8 +1823,10 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     rec.K_ = K;
     if (kSoA) {
       rec.S = VisRecord<kSoA>::plane_stride(HW);
-      rec.f = rec_f.reserve((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
-      rec.ix = rec_i.reserve((size_t)(rec.S * K));
+      // (16 values in front of the first plane: the AVX-512 walk's full loads may start up to 15
+      // values before a run, VisAddr16)
+      rec.f = rec_f.reserve((size_t)(rec.S * VisRecord<kSoA>::fields(C, K) + 16)) + 16;
+      rec.ix = rec_i.reserve((size_t)(rec.S * K + 16)) + 16;
     } else {
       rec.S = VisRecord<kSoA>::fields(C, K);
       rec.f = rec_f.reserve((size_t)(rec.S * HW));
