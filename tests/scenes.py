@@ -109,3 +109,13 @@ def vector_levels(mod) -> list[int]:
     if top == 0:
         pytest.skip("no AVX2 on this CPU: the scalar path is the only one")
     return list(range(1, top + 1))
+
+
+def require_vector_level(mod, level: int) -> None:
+    """Skip a test of vector level ``level`` (0 scalar, 1 AVX2, 2 AVX-512) where this CPU lacks
+    it; fail where the CPU has it and the build does not take it."""
+    if level == 0:
+        return
+    if level > mod.max_vector_level():
+        vector_levels(mod)  # fails where the CPU has the instructions; skips where it has no vector path
+        pytest.skip(f"vector level {level} needs instructions this CPU lacks")

@@ -4,7 +4,14 @@ import math
 
 import pytest
 import torch
-from scenes import axis_camera, random_scene, skip_without_vector_path, sphere_points
+from scenes import (
+    axis_camera,
+    random_scene,
+    require_vector_level,
+    skip_without_vector_path,
+    sphere_points,
+    vector_levels,
+)
 
 from dss.rasterizer import reference as ref
 from dss.rasterizer.fragments import Fragments
@@ -336,7 +343,8 @@ def test_cpp_sun_shader_matches_the_torch_one(dtype, cpp_backend):
 def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
     """The AVX2 tile loop (dss_cpu.cpp tile_fragments_avx2: 16 pixels' cutoff and top-K gate
     tests at once, rows skipped when every list in them is full and closer) builds exactly the
-    scalar loop's caches and images. The scene has many layers per pixel (full lists, the gate
+    scalar loop's caches and images, at every vector level (level 2 adds the AVX-512 build of the
+    binning's box scan). The scene has many layers per pixel (full lists, the gate
     and the row skip at work), duplicated points (equal depths: the index breaks the tie), splats
     over the image border and an image whose width and height are not multiples of the 16-pixel
     tile; (K, C) cover the compiled variants and the run-time one, C = 0 the cache alone."""
@@ -344,8 +352,7 @@ def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
     from dss.splats import project_splats
 
     mod = _ext.load_cpu()
-    if not mod.vector_path_available():
-        skip_without_vector_path()
+    levels = vector_levels(mod)
     pts, nrm, cams, sigma, _ = random_scene(K * 10 + C, n=2500, views=3, size=(45, 70))
     pts = torch.cat([pts * 1.3, pts[:300] * 1.3])  # 300 exact duplicates
     nrm = torch.cat([nrm, nrm[:300]])
@@ -354,14 +361,15 @@ def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
     attrs = torch.rand(packed.shape[0], packed.shape[1], C, generator=torch.Generator().manual_seed(3))
     bg = torch.full((C,), 0.25)
     H, W = cams.image_size
-    before = mod.set_vector_path(True)
+    before = mod.set_vector_level(0)
     try:
-        vec = mod.rasterize_forward(packed, attrs, H, W, K, 1.0, 0.05, bg)
-        vec = [t.clone() for t in vec]
-        mod.set_vector_path(False)
-        scalar = mod.rasterize_forward(packed, attrs, H, W, K, 1.0, 0.05, bg)
+        scalar = [t.clone() for t in mod.rasterize_forward(packed, attrs, H, W, K, 1.0, 0.05, bg)]
+        by_level = {}
+        for level in levels:
+            mod.set_vector_level(level)
+            by_level[level] = [t.clone() for t in mod.rasterize_forward(packed, attrs, H, W, K, 1.0, 0.05, bg)]
     finally:
-        mod.set_vector_path(before)
+        mod.set_vector_level(before)
     idx = scalar[0]
     assert (idx[..., -1] >= 0).float().mean() > 0.2  # many full lists
     same = (idx[..., :-1] == idx[..., 1:]) & (idx[..., :-1] >= 0)
@@ -369,8 +377,9 @@ def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
     dup_in_one_list = ((idx[..., :, None] % 2500 == idx[..., None, :] % 2500) & (idx[..., :, None] != idx[..., None, :])
                        & (idx[..., :, None] >= 0)).any()
     assert K == 1 or dup_in_one_list  # a duplicate pair met in some list: the tie rule decided
-    for name, a, b in zip(("idx", "depth", "rho", "images", "mask"), vec, scalar):
-        assert torch.equal(a, b), f"{name} differs"
+    for level, vec in by_level.items():
+        for name, a, b in zip(("idx", "depth", "rho", "images", "mask"), vec, scalar):
+            assert torch.equal(a, b), f"level {level}: {name} differs"
 
 
 def _quad32(conic, dx, dy):
@@ -413,8 +422,8 @@ def _splat_with_a_pixel_on_its_ellipse(rng, i: int, j: int, row_minimum: bool, t
     return np.array([u, v, *conic, rng.uniform(0.5, 2.0), rng.uniform(1.0, 3.0), rx, ry, 1.0], np.float32)
 
 
-@pytest.mark.parametrize("vector", [True, False])
-def test_tightened_boxes_keep_pixels_on_the_cutoff_ellipse(vector, cpp_backend):
+@pytest.mark.parametrize("level", [2, 1, 0], ids=["avx512", "avx2", "scalar"])
+def test_tightened_boxes_keep_pixels_on_the_cutoff_ellipse(level, cpp_backend):
     """The C++ binning shrinks each splat's box to the rows and columns that can hold a pixel with
     0.5 q <= cutoff (dss_cpu.cpp tighten_box: the form's minimum over a row or a column, with a
     margin for quad()'s float32 rounding); the reference tests every pixel of the padded box. Each
@@ -429,19 +438,18 @@ def test_tightened_boxes_keep_pixels_on_the_cutoff_ellipse(vector, cpp_backend):
     from dss.splats import Splats
 
     mod = _ext.load_cpu()
-    if vector and not mod.vector_path_available():
-        skip_without_vector_path()
+    require_vector_level(mod, level)
     rng = np.random.default_rng(7)
     H, W, V, N, cutoff = 40, 56, 2, 300, 1.0
     edge = [(v, k, int(rng.integers(0, H)), int(rng.integers(0, W))) for v in range(V) for k in range(N)]
     packed = torch.from_numpy(np.stack([_splat_with_a_pixel_on_its_ellipse(rng, i, j, k % 2 == 1, np.float32(2 * cutoff))
                                         for _, k, i, j in edge]).reshape(V, N, 10))
     want = ref.rasterize(Splats(packed), (H, W), K=8, cutoff=cutoff)
-    before = mod.set_vector_path(vector)
+    before = mod.set_vector_level(level)
     try:
         idx, depth, rho, _, _ = mod.rasterize_forward(packed, torch.empty(0), H, W, 8, cutoff, 0.0, torch.empty(0))
     finally:
-        mod.set_vector_path(before)
+        mod.set_vector_level(before)
     assert torch.equal(idx, want.idx) and torch.equal(depth, want.depth)
     torch.testing.assert_close(rho, want.rho, rtol=1e-6, atol=1e-7)
     on_edge = sum(bool((want.idx[v, i, j] == k).any()) for v, k, i, j in edge)
