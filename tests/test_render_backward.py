@@ -541,16 +541,14 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, size, cpp_ba
     the scalar evaluation's gradient: the same float32 operations per lane and the contributions
     added in the same partial sums in the same order (dss/csrc/splat_math.h vis_partial: lane l
     of every run into partial l). Level 1 (AVX2) takes 8 pixels per vector, level 2 (AVX-512,
-    where the CPU has it) 16 pixels of an interior window of 9 to 15 columns, running over up
-    to 3 rows. The parameters cover the compiled (K, C) variants and the run-time one, windows
-    whose rows are runs of 8 plus a rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1;
-    for 16 lanes, 4: 5 chunks + 1 pixel, 5: 7 chunks + a chunk of 9, 7: 14 chunks + 1 pixel),
-    and points near and beyond the image border (runs partly off the image use masked loads);
-    an image 10 pixels wide has interior windows whose 16-lane loads start before their row.
-    Windows of 9 to 15 columns wholly on the image (most points here) take the chunked walks
-    across row ends (VisFlatPlan, VisFlatPlan16), whose lanes are moved to their columns'
-    partials; the others the AVX2 row walk. Narrower windows take the scalar path (nothing to
-    compare)."""
+    where the CPU has it) a whole window row of 9 to 15 columns per vector. The parameters cover
+    the compiled (K, C) variants and the run-time one, windows whose rows are runs of 8 plus a
+    rest (4: 8 + 1, 5: 8 + 3, 7: 8 + 7, 8: 16 + 1, 12: 24 + 1; 16 lanes take windows 4, 5 and 7),
+    and points near and beyond the image border (runs partly off the image use masked loads); an
+    image 10 pixels wide has windows whose 16-lane rows run past the image's right edge. With
+    AVX2, windows of 9 to 15 columns wholly on the image (most points here) take the chunked walk
+    across row ends (VisFlatPlan), whose lanes are moved to their columns' partials; the others
+    the row walk. Narrower windows take the scalar path (nothing to compare)."""
     from dss import _ext
     from dss.splats import tangent_planes
 

@@ -1376,43 +1376,37 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
                         part[F.n - 1]);
 }
 
-// The dss rule over an interior window of 9 to 15 columns in 16 lanes (AVX-512, taken where the
-// CPU has it): the window's pixels in row-major order, 16 per vector, whatever rows they are in
-// (a 9 x 9 window is 5 chunks and one pixel, where the 8-lane walk takes 10 chunks and one pixel).
-// VisLanes16::eval is VisLanes::eval with 16 lanes and mask registers: the same float32 operations
-// in the same order per lane, every case computed in every lane and selected by masks, lanes that
-// do not contribute holding +0. The lanes' contributions go to the same partial sums in the same
-// order (row-major within each column's partial), so the result is the scalar walk's bit for bit
-// (tests/test_render_backward.py compares every vector level with the scalar path). 1.15x on the
-// 20K position step's visibility backward (2 cores, Zen 5) against the 8-lane walk.
+// The dss rule in 16 lanes (AVX-512, taken where the CPU has it) for windows of 9 to 15 columns:
+// one window row per vector (lane l: column l of the window; the lanes beyond the row unused),
+// for windows wholly on the image and at its border alike. VisLanes16::eval is VisLanes::eval
+// with 16 lanes and mask registers: the same float32 operations in the same order per lane, every
+// case computed in every lane and selected by masks, lanes that do not contribute holding +0. A
+// lane's contributions go to its column's partial sum (vis_partial: the column number, for these
+// widths), rows in order, so the result is the scalar walk's bit for bit
+// (tests/test_render_backward.py compares every vector level with the scalar path). Against the
+// 8-lane walk, 1.3x on the 20K position step's visibility backward (2 cores, Zen 5). (A walk
+// that packed a window's pixels 16 at a time in row-major order, 5 vectors and one pixel per 9 x 9
+// window instead of 9 vectors, was 1.14x slower: each vector read 2-3 row runs per plane, and
+// the loads, not the arithmetic, bound this kernel.)
 struct VisChunkOut16 {
   __m512 x1, y1, x2, y2, z;
   bool any;
   bool any_c;  // some lane contributes through case (c): x2, y2 are +0 in every lane otherwise
 };
 
-// A chunk of 16 consecutive pixels of a window in row-major order: up to 3 runs, each within one
-// row (16 pixels span at most 3 rows of 9 or more), lane l of run s at offset base[s] + l. A
-// plane is read with one full load per run, the runs' lanes blended together: 1.08x on the whole
-// kernel against a masked load per run. A full load reads up to 15 values before or after its
-// run, which lie on the image, in the padding after each plane (VisRecord::plane_stride) or in
-// the 16 values kept in front of the first; lanes outside the window (a last, partial chunk) are
-// never used.
-struct VisAddr16 {
-  int nseg;
-  int64_t base[3];
-  __mmask16 seg[3];
+// One window row: lane l at offset p0 + l of every plane. Rows wholly on the image are read with
+// full loads, which may read up to 7 values beyond the row's window (on the image or in a plane's
+// padding, VisRecord::plane_stride; never used); rows at the border with loads masked to the
+// lanes on the image.
+struct VisRow16 {
+  int64_t p0;
+  bool masked;
+  __mmask16 oki;
   DSS_AVX512 inline __m512 ld(const float* plane) const {
-    __m512 v = _mm512_loadu_ps(plane + base[0]);
-    v = _mm512_mask_blend_ps(seg[1], v, _mm512_loadu_ps(plane + base[1]));
-    if (nseg > 2) v = _mm512_mask_blend_ps(seg[2], v, _mm512_loadu_ps(plane + base[2]));
-    return v;
+    return masked ? _mm512_maskz_loadu_ps(oki, plane + p0) : _mm512_loadu_ps(plane + p0);
   }
   DSS_AVX512 inline __m512i ldi(const int32_t* plane) const {
-    __m512i v = _mm512_loadu_si512((const void*)(plane + base[0]));
-    v = _mm512_mask_blend_epi32(seg[1], v, _mm512_loadu_si512((const void*)(plane + base[1])));
-    if (nseg > 2) v = _mm512_mask_blend_epi32(seg[2], v, _mm512_loadu_si512((const void*)(plane + base[2])));
-    return v;
+    return masked ? _mm512_maskz_loadu_epi32(oki, plane + p0) : _mm512_loadu_si512((const void*)(plane + p0));
   }
 };
 
@@ -1454,7 +1448,8 @@ struct VisLanes16 {
 
   // The 16 evaluations of one chunk (lanes in oki); (px, py) the pixel centres. Comments on the
   // cases: VisLanes::eval and vis_state.
-  DSS_AVX512 void eval(const VisAddr16& a, __mmask16 oki, __m512 px, __m512 vpy, VisChunkOut16& out) const {
+  template <class Addr>
+  DSS_AVX512 void eval(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisChunkOut16& out) const {
     const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
     out.any = false;
     const __mmask16 m = _mm512_mask_cmp_ps_mask(oki, a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ);
@@ -1572,145 +1567,53 @@ struct VisLanes16 {
   }
 };
 
-// The 16-lane walk of a window of n = 2 w + 1 columns, 9 <= n <= 15: chunk c holds window pixels
-// 16 c + l (row, column below), the last chunk only the valid lanes when n * n leaves more than 2
-// pixels over (n = 11, 13), else those pixels go through eval_scalar. A column appears at most
-// twice in a chunk (16 < 2 n), so a chunk's contributions to the partials of columns 0-7 are
-// added in two rounds, the lanes where a column appears first, then those where it appears
-// again (a later row), each moved to its column's lane by perm (present where pres is set);
-// columns 8 and beyond (vis_partial's own partials) one lane at a time in lane order. Every
-// partial gets its pixels in row-major order, as on the row walk.
-struct VisFlatPlan16 {
-  static constexpr int kMaxChunks = 15;  // ceil(15 * 15 / 16)
-  int n = 0, nvec = 0, nlast = 0;  // full chunks; pixels of a last partial chunk (0: none)
-  int nseg[kMaxChunks];          // the chunk's runs (VisAddr16)
-  int64_t base[kMaxChunks][3];   // per run: offset of lane 0's address from the window's first pixel
-  __mmask16 seg[kMaxChunks][3];  // per run: its lanes
-  __mmask16 valid[kMaxChunks];   // the chunk's lanes that are window pixels
-  alignas(64) int32_t col[kMaxChunks][16], row[kMaxChunks][16];
-  alignas(64) int32_t perm[kMaxChunks][2][16];  // per round: partial lane <- chunk lane
-  __mmask8 pres[kMaxChunks][2];
-  int nextra[kMaxChunks], extra[kMaxChunks][16];
-
-  bool build(int64_t w, int64_t W) {
-    n = (int)(2 * w + 1);
-    if (n < 9 || n > 15) return false;
-    const int total = n * n;
-    nvec = total / 16;
-    const int rem = total - 16 * nvec;
-    nlast = rem > 2 ? rem : 0;  // 1 or 2 leftover pixels go through eval_scalar
-    const int nch = nvec + (nlast ? 1 : 0);
-    for (int c = 0; c < nch; ++c) {
-      nseg[c] = 0;
-      valid[c] = 0;
-      nextra[c] = 0;
-      for (int r = 0; r < 2; ++r) {
-        pres[c][r] = 0;
-        for (int k = 0; k < 16; ++k) perm[c][r][k] = 0;
-      }
-      for (int l = 0; l < 16; ++l) col[c][l] = 0, row[c][l] = 0;
-      int seen[16] = {0};
-      int prev_row = -1;
-      for (int l = 0; l < 16; ++l) {
-        const int f = 16 * c + l;
-        if (f >= total) break;
-        valid[c] |= (__mmask16)(1u << l);
-        row[c][l] = f / n;
-        col[c][l] = f % n;
-        if (row[c][l] != prev_row) {
-          base[c][nseg[c]] = (int64_t)row[c][l] * W + col[c][l] - l;
-          seg[c][nseg[c]] = 0;
-          ++nseg[c];
-          prev_row = row[c][l];
-        }
-        seg[c][nseg[c] - 1] |= (__mmask16)(1u << l);
-        if (col[c][l] < 8) {
-          const int r = seen[col[c][l]]++;
-          perm[c][r][col[c][l]] = l;
-          pres[c][r] |= (__mmask8)(1u << col[c][l]);
-        } else {
-          extra[c][nextra[c]++] = l;
-        }
-      }
-      for (int s = nseg[c]; s < 3; ++s) base[c][s] = base[c][0], seg[c][s] = 0;
-    }
-    return true;
-  }
-};
-
-// One round of a chunk's contributions x added to the double partials of columns 0-7 (acc).
-DSS_AVX512 inline void add_cols16(__m512d& acc, __m512 x, const int32_t* perm, __mmask8 pres) {
-  const __m512 p = _mm512_permutexvar_ps(_mm512_load_si512((const void*)perm), x);
-  acc = _mm512_mask_add_pd(acc, pres, acc, _mm512_cvtps_pd(_mm512_castps512_ps256(p)));
-}
-
-// The window of the point P centred on pixel (ic, jc), wholly on the image, by plan F; adds the
-// window's partial sums to acc as window_dss_avx2 does.
+// The window of half size w (9 <= 2 w + 1 <= 15 columns) of the point P centred on pixel (ic, jc),
+// its rows on the image one vector each; adds the window's partial sums to acc in partial order.
 template <int64_t KC, int64_t CC>
-DSS_AVX512 void window_flat_avx512(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P,
-                                   const VisConsts& Q, const VisFlatPlan16& F, int64_t W, int64_t window, int ic,
-                                   int jc, double acc[3]) {
+DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P,
+                                   const VisConsts& Q, int64_t H, int64_t W, int64_t window, int ic, int jc,
+                                   double acc[3]) {
   VisLanes16<KC, CC> L;
   L.init(rec, Krt, Crt, P, Q);
-  const int nq = dss_splat::vis_partial_count(window);
-  const int64_t corner = (int64_t)(ic - window) * W + (jc - window);
-  const __m512i vj0 = _mm512_set1_epi32(jc - (int)window), vi0 = _mm512_set1_epi32(ic - (int)window);
-  const __m512 half = _mm512_set1_ps(0.5f);
-  __m512d sx = _mm512_setzero_pd(), sy = sx, sz = sx;
-  double part[dss_splat::kVisPartials][3];  // 0-7 from the lanes at the end; the others zeroed
-  for (int q = 8; q < nq; ++q) part[q][0] = part[q][1] = part[q][2] = 0.0;
+  const int n = (int)(2 * window + 1), j0 = jc - (int)window;
+  const int nq = dss_splat::vis_partial_count(window);  // = n: partial q is column q
+  const __m512i vj = _mm512_add_epi32(_mm512_set1_epi32(j0),
+                                      _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
+  const __m512 px = _mm512_add_ps(_mm512_cvtepi32_ps(vj), _mm512_set1_ps(0.5f));
+  VisRow16 a;
+  // the window's columns on the image
+  a.oki = (__mmask16)((1u << n) - 1u) & _mm512_cmpgt_epi32_mask(vj, _mm512_set1_epi32(-1)) &
+          _mm512_cmpgt_epi32_mask(_mm512_set1_epi32((int)W), vj);
+  a.masked = !(j0 >= 0 && j0 + n <= W);
+  // partials 0-7 and 8-15 as doubles, lane l = column l
+  __m512d sx[2] = {_mm512_setzero_pd(), _mm512_setzero_pd()}, sy[2] = {sx[0], sx[0]}, sz[2] = {sx[0], sx[0]};
+  auto add = [&](__m512d* sum, __m512 x) DSS_AVX512 {
+    sum[0] = _mm512_add_pd(sum[0], _mm512_cvtps_pd(_mm512_castps512_ps256(x)));
+    sum[1] = _mm512_add_pd(sum[1], _mm512_cvtps_pd(_mm512_extractf32x8_ps(x, 1)));
+  };
   VisChunkOut16 o;
-  VisAddr16 a;
-  const int nch = F.nvec + (F.nlast ? 1 : 0);
-  for (int c = 0; c < nch; ++c) {
-    const __m512 px = _mm512_add_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(vj0, _mm512_load_si512((const void*)F.col[c]))), half);
-    const __m512 py = _mm512_add_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(vi0, _mm512_load_si512((const void*)F.row[c]))), half);
-    a.nseg = F.nseg[c];
-    for (int s = 0; s < 3; ++s) a.base[s] = corner + F.base[c][s], a.seg[s] = F.seg[c][s];
-    L.eval(a, F.valid[c], px, py, o);
+  for (int i = std::max(ic - (int)window, 0); i <= std::min(ic + (int)window, (int)H - 1); ++i) {
+    a.p0 = (int64_t)i * W + j0;
+    L.eval(a, a.oki, px, _mm512_set1_ps((float)i + 0.5f), o);
     if (!o.any) continue;
-    // (x2, y2 only where some lane took case (c), 18% of the chunks: adding +0 to a partial,
-    // which is never -0, leaves it unchanged)
-    for (int r = 0; r < 2; ++r) {
-      if (!F.pres[c][r]) continue;
-      add_cols16(sx, o.x1, F.perm[c][r], F.pres[c][r]);
-      add_cols16(sy, o.y1, F.perm[c][r], F.pres[c][r]);
-      if (o.any_c) {
-        add_cols16(sx, o.x2, F.perm[c][r], F.pres[c][r]);
-        add_cols16(sy, o.y2, F.perm[c][r], F.pres[c][r]);
-      }
-      add_cols16(sz, o.z, F.perm[c][r], F.pres[c][r]);
+    // eval_scalar's order per pixel: (x1, y1), then (x2, y2, z); x2 and y2 only where some lane
+    // took case (c), 18% of the rows at 20K points (adding +0 to a partial, which is never -0,
+    // leaves it unchanged)
+    add(sx, o.x1);
+    add(sy, o.y1);
+    if (o.any_c) {
+      add(sx, o.x2);
+      add(sy, o.y2);
     }
-    if (F.nextra[c]) {
-      alignas(64) float x1[16], y1[16], x2[16], y2[16], z[16];
-      _mm512_store_ps(x1, o.x1), _mm512_store_ps(y1, o.y1), _mm512_store_ps(x2, o.x2);
-      _mm512_store_ps(y2, o.y2), _mm512_store_ps(z, o.z);
-      for (int e = 0; e < F.nextra[c]; ++e) {
-        const int l = F.extra[c][e];
-        double* q = part[dss_splat::vis_partial(F.col[c][l], 8)];
-        q[0] += x1[l];
-        q[1] += y1[l];
-        q[0] += x2[l];
-        q[1] += y2[l];
-        q[2] += z[l];
-      }
-    }
+    add(sz, o.z);
   }
-  // 1 or 2 leftover pixels at the window's end
-  const int total = F.n * F.n;
-  for (int f = 16 * nch; f < total; ++f) {
-    const int r = f / F.n, cc = f % F.n;
-    const int64_t p = corner + (int64_t)r * W + cc;
-    if (rec.nz(p) != 0.f)
-      eval_scalar<KC, CC>(rec, Krt, Crt, P, Q, 0, p, (float)(jc - window + cc) + 0.5f, (float)(ic - window + r) + 0.5f,
-                          part[dss_splat::vis_partial(cc, 8)]);
-  }
-  alignas(64) double lanes[3][8];
-  _mm512_store_pd(lanes[0], sx);
-  _mm512_store_pd(lanes[1], sy);
-  _mm512_store_pd(lanes[2], sz);
-  for (int l = 0; l < 8; ++l)
-    for (int c = 0; c < 3; ++c) part[l][c] = lanes[c][l];
+  alignas(64) double lanes[3][16];
+  _mm512_store_pd(lanes[0], sx[0]), _mm512_store_pd(lanes[0] + 8, sx[1]);
+  _mm512_store_pd(lanes[1], sy[0]), _mm512_store_pd(lanes[1] + 8, sy[1]);
+  _mm512_store_pd(lanes[2], sz[0]), _mm512_store_pd(lanes[2] + 8, sz[1]);
+  double part[dss_splat::kVisPartials][3];
+  for (int q = 0; q < nq; ++q)
+    for (int c = 0; c < 3; ++c) part[q][c] = lanes[c][q];
   add_partials(part, nq, acc);
 }
 
@@ -1826,8 +1729,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 #ifdef DSS_HAVE_AVX2
   VisFlatPlan flat_plan;
   const VisFlatPlan* flat = vec && flat_plan.build(window, W) ? &flat_plan : nullptr;
-  VisFlatPlan16 flat16_plan;
-  const VisFlatPlan16* flat16 = vec && use_avx512() && flat16_plan.build(window, W) ? &flat16_plan : nullptr;
+  // windows of 9 to 15 columns in 16 lanes, a row per vector, where the CPU has AVX-512
+  const bool rows16 = vec && use_avx512() && window >= 4 && window <= 7;
 #endif
   static thread_local HugeBuffer<float> rec_f;
   static thread_local HugeBuffer<int32_t> rec_i;
@@ -1838,10 +1741,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     rec.K_ = K;
     if (kSoA) {
       rec.S = VisRecord<kSoA>::plane_stride(HW);
-      // (16 values in front of the first plane: the AVX-512 walk's full loads may start up to 15
-      // values before a run, VisAddr16)
-      rec.f = rec_f.reserve((size_t)(rec.S * VisRecord<kSoA>::fields(C, K) + 16)) + 16;
-      rec.ix = rec_i.reserve((size_t)(rec.S * K + 16)) + 16;
+      rec.f = rec_f.reserve((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
+      rec.ix = rec_i.reserve((size_t)(rec.S * K));
     } else {
       rec.S = VisRecord<kSoA>::fields(C, K);
       rec.f = rec_f.reserve((size_t)(rec.S * HW));
@@ -1931,8 +1832,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
           bool done = false;
 #ifdef DSS_HAVE_AVX2
           if constexpr (kSoA) {
-            if (vec && flat16 && ic - window >= 0 && ic + window < H && jc - window >= 0 && jc + window < W) {
-              window_flat_avx512<KC, CC>(R, Krt, Crt, pt, Q, *flat16, W, window, ic, jc, acc);
+            if (rows16) {
+              window_rows_avx512<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, acc);
               done = true;
             } else if (vec) {
               window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, acc);
