@@ -905,6 +905,8 @@ struct VisRecord {
   static int64_t fields(int64_t C, int64_t K) { return 6 + C + 3 * K; }
   // H*W rounded up to 16 values, plus 5 cache lines: planes a power of two apart (256 KB at
   // 256x256) would all map to the same few sets of the L1 and L2 caches and evict each other.
+  // (The padding also holds the up to 7 values that the AVX-512 walk's full loads read past a
+  // plane's last pixel, VisRow16.)
   static int64_t plane_stride(int64_t HW) { return (HW + 15) / 16 * 16 + 80; }
 };
 
@@ -1384,9 +1386,9 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
 // lane's contributions go to its column's partial sum (vis_partial: the column number, for these
 // widths), rows in order, so the result is the scalar walk's bit for bit
 // (tests/test_render_backward.py compares every vector level with the scalar path). Against the
-// 8-lane walk, 1.3x on the 20K position step's visibility backward (2 cores, Zen 5). (A walk
+// 8-lane walk, 1.34x on the 20K position step's visibility backward (2 cores, Zen 5). (A walk
 // that packed a window's pixels 16 at a time in row-major order, 5 vectors and one pixel per 9 x 9
-// window instead of 9 vectors, was 1.14x slower: each vector read 2-3 row runs per plane, and
+// window instead of 9 vectors, was 1.07x slower: each vector read 2-3 row runs per plane, and
 // the loads, not the arithmetic, bound this kernel.)
 struct VisChunkOut16 {
   __m512 x1, y1, x2, y2, z;
@@ -1597,8 +1599,8 @@ DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t K
     L.eval(a, a.oki, px, _mm512_set1_ps((float)i + 0.5f), o);
     if (!o.any) continue;
     // eval_scalar's order per pixel: (x1, y1), then (x2, y2, z); x2 and y2 only where some lane
-    // took case (c), 18% of the rows at 20K points (adding +0 to a partial, which is never -0,
-    // leaves it unchanged)
+    // took case (c), a minority of the rows (the other lanes hold +0, and adding +0 to a
+    // partial, which is never -0, leaves it unchanged)
     add(sx, o.x1);
     add(sy, o.y1);
     if (o.any_c) {
