@@ -314,30 +314,33 @@ def test_every_deform_scene_composes_into_a_valid_optimizer_config():
 
 def test_frozen_gc_freezes_for_the_block_and_leaves_a_callers_freeze_alone():
     """dss.gc_pause.frozen_gc (around MultiViewOptimizer.run's cycles) freezes the objects alive
-    at entry and unfreezes them at exit, and does neither when something is frozen already."""
+    at entry and unfreezes them at exit, and does neither when something is frozen already.
+    Whether an object is frozen is read from gc.get_objects(), which lists the collected
+    generations only. (Not by comparing freeze counts: a frozen object that another thread or a
+    finaliser frees meanwhile lowers the count; such comparisons failed in clean-clone CI runs.)"""
     import gc
 
     from dss.gc_pause import frozen_gc
 
+    def frozen(obj) -> bool:
+        return not any(o is obj for o in gc.get_objects())
+
     assert gc.get_freeze_count() == 0
+    ours = [object()]  # tracked by the collector until frozen
+    assert not frozen(ours)
     with frozen_gc():
-        frozen = gc.get_freeze_count()
-        assert frozen > 0
+        assert gc.get_freeze_count() > 0 and frozen(ours)
         with frozen_gc():  # nested: no second freeze, no early unfreeze
-            assert gc.get_freeze_count() == frozen
-        assert gc.get_freeze_count() == frozen
-    assert gc.get_freeze_count() == 0
-    mine = [object()]  # tracked by the collector until frozen
+            assert frozen(ours)
+        assert frozen(ours)
+    assert gc.get_freeze_count() == 0 and not frozen(ours)
+    mine = [object()]
     gc.freeze()
     try:
-        assert not any(o is mine for o in gc.get_objects())  # frozen: out of the collected generations
+        assert frozen(mine)
         with frozen_gc():
             pass
-        # the caller's freeze stays. (Not compared by count: a frozen object that another thread
-        # or a finaliser frees meanwhile lowers the count, which made the test flaky.)
-        assert gc.get_freeze_count() > 0
-        assert not any(o is mine for o in gc.get_objects())
+        assert gc.get_freeze_count() > 0 and frozen(mine)  # the caller's freeze stays
     finally:
         gc.unfreeze()
-    assert gc.get_freeze_count() == 0
-    assert any(o is mine for o in gc.get_objects())
+    assert gc.get_freeze_count() == 0 and not frozen(mine)
