@@ -177,7 +177,7 @@ def machine_info() -> dict:
     from dss import _ext
 
     mod = _ext.load_cpu()
-    level = mod.vector_level() if mod is not None and hasattr(mod, "vector_level") else None
+    level = mod.vector_level() if mod is not None else None
     return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__,
             "kernel_openmp": _ext.openmp_enabled(),
             # the vector paths the C++ kernels take (dss_cpu.cpp g_vector_level)

@@ -263,7 +263,7 @@ def _mapping_flags(address: int) -> list[str] | None:
 def test_large_output_blocks_are_marked_for_huge_pages(cpp_backend):
     """Output blocks of 2 MB or more (the top-K cache: 2.6 MB per array here) start on a 2 MB
     boundary and, on Linux, lie in a range advised for transparent huge pages (VmFlags "hg"), so
-    that scattered reads of the cache and the visibility record take few TLB entries."""
+    that writing the cache out and reading its rows in scattered order take few TLB entries."""
     import sys
 
     from dss import _ext

@@ -163,17 +163,14 @@ DSS_AVX512 void scan_boxes_avx512(const float* P, int n, int H, int W, float cut
 // (vis_state evaluates it inline, with the square root only where the clamp applies.)
 constexpr float kMaxSlope = 3.f;
 
-// Memory for large buffers that the kernels read in scattered order (the visibility record, the
-// pooled output blocks): 2 MB aligned and marked for transparent huge pages (Linux with THP in
-// "madvise" mode, the common default, backs only marked ranges with them), so that a window's
-// 29 planes or a visit list's scattered cache rows cost a few TLB entries instead of one per
-// 4 KB page. Elsewhere it is a plain aligned allocation. Free with std::free.
+// Memory for the pooled output blocks (pooled_empty): blocks of 2 MB or more are 2 MB aligned
+// and marked for transparent huge pages (Linux with THP in "madvise" mode, the common default,
+// backs only marked ranges with them), so that streaming out the 47 MB cache or reading its rows
+// in scattered order costs a few TLB entries instead of one per 4 KB page (rasteriser 1.04-1.06x
+// at 20K points). Smaller blocks are a plain 64-byte aligned allocation. Free with std::free.
 constexpr size_t kHugePage = size_t(2) << 20;
 void* huge_alloc(size_t bytes) {
-  if (bytes < kHugePage) {
-    void* p = std::aligned_alloc(64, (bytes + 63) / 64 * 64);
-    return p;
-  }
+  if (bytes < kHugePage) return std::aligned_alloc(64, (bytes + 63) / 64 * 64);
   const size_t n = (bytes + kHugePage - 1) / kHugePage * kHugePage;
   void* p = std::aligned_alloc(kHugePage, n);
 #ifdef MADV_HUGEPAGE
@@ -181,24 +178,6 @@ void* huge_alloc(size_t bytes) {
 #endif
   return p;
 }
-
-// A grow-only buffer of T from huge_alloc (contents kept only up to the old size on growth:
-// callers overwrite what they read).
-template <class T>
-struct HugeBuffer {
-  T* ptr = nullptr;
-  size_t cap = 0;
-  ~HugeBuffer() { std::free(ptr); }
-  T* reserve(size_t n) {
-    if (n > cap) {
-      std::free(ptr);
-      ptr = static_cast<T*>(huge_alloc(n * sizeof(T)));
-      TORCH_CHECK(ptr != nullptr, "dss: out of memory allocating ", n * sizeof(T), " bytes");
-      cap = n;
-    }
-    return ptr;
-  }
-};
 
 // Large outputs (the top-K cache is 47 MB at 12 views of 256x256) come from a block cache: a
 // fresh allocation of that size is a fresh mmap, whose page faults and kernel zeroing cost more
@@ -265,8 +244,8 @@ int64_t empty_cache() {
 }
 
 // Which vector paths the kernels take: 0 the baseline (scalar) loops, 1 the AVX2 paths, 2 also
-// the AVX-512 one (the visibility backward's interior windows, 16 pixels per vector), each level
-// where both this build and the CPU have it. set_vector_level / set_vector_path force a lower
+// the AVX-512 ones (the visibility backward's windows of 9-15 columns, a row per 16-lane vector;
+// the binning's box scan), each level where both this build and the CPU have it. set_vector_level / set_vector_path force a lower
 // level, for tests and comparisons: every level gives the same bits.
 std::atomic<int> g_vector_level{2};
 bool vector_path_available() {
@@ -1390,7 +1369,7 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
 // that packed a window's pixels 16 at a time in row-major order, 5 vectors and one pixel per 9 x 9
 // window instead of 9 vectors, was 1.07x slower: each vector read 2-3 row runs per plane, and
 // the loads, not the arithmetic, bound this kernel.)
-struct VisChunkOut16 {
+struct VisRowOut16 {
   __m512 x1, y1, x2, y2, z;
   bool any;
   bool any_c;  // some lane contributes through case (c): x2, y2 are +0 in every lane otherwise
@@ -1448,10 +1427,10 @@ struct VisLanes16 {
     }
   }
 
-  // The 16 evaluations of one chunk (lanes in oki); (px, py) the pixel centres. Comments on the
-  // cases: VisLanes::eval and vis_state.
+  // The evaluations of one window row (lanes in oki); (px, py) the pixel centres. Comments on
+  // the cases: VisLanes::eval and vis_state.
   template <class Addr>
-  DSS_AVX512 void eval(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisChunkOut16& out) const {
+  DSS_AVX512 void eval(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisRowOut16& out) const {
     const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
     out.any = false;
     const __mmask16 m = _mm512_mask_cmp_ps_mask(oki, a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ);
@@ -1593,7 +1572,7 @@ DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t K
     sum[0] = _mm512_add_pd(sum[0], _mm512_cvtps_pd(_mm512_castps512_ps256(x)));
     sum[1] = _mm512_add_pd(sum[1], _mm512_cvtps_pd(_mm512_extractf32x8_ps(x, 1)));
   };
-  VisChunkOut16 o;
+  VisRowOut16 o;
   for (int i = std::max(ic - (int)window, 0); i <= std::min(ic + (int)window, (int)H - 1); ++i) {
     a.p0 = (int64_t)i * W + j0;
     L.eval(a, a.oki, px, _mm512_set1_ps((float)i + 0.5f), o);
@@ -1729,13 +1708,14 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   const int64_t kChunk = 64;
   const float inf = std::numeric_limits<float>::infinity();
 #ifdef DSS_HAVE_AVX2
-  VisFlatPlan flat_plan;
-  const VisFlatPlan* flat = vec && flat_plan.build(window, W) ? &flat_plan : nullptr;
-  // windows of 9 to 15 columns in 16 lanes, a row per vector, where the CPU has AVX-512
+  // windows of 9 to 15 columns in 16 lanes, a row per vector, where the CPU has AVX-512; the
+  // 8-lane walk's chunk plan otherwise
   const bool rows16 = vec && use_avx512() && window >= 4 && window <= 7;
+  VisFlatPlan flat_plan;
+  const VisFlatPlan* flat = vec && !rows16 && flat_plan.build(window, W) ? &flat_plan : nullptr;
 #endif
-  static thread_local HugeBuffer<float> rec_f;
-  static thread_local HugeBuffer<int32_t> rec_i;
+  static thread_local std::vector<float> rec_f;
+  static thread_local std::vector<int32_t> rec_i;
   auto run = [&](auto layout) {
     constexpr bool kSoA = decltype(layout)::value;
     VisRecord<kSoA> rec;
@@ -1743,12 +1723,14 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     rec.K_ = K;
     if (kSoA) {
       rec.S = VisRecord<kSoA>::plane_stride(HW);
-      rec.f = rec_f.reserve((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
-      rec.ix = rec_i.reserve((size_t)(rec.S * K));
+      rec_f.resize((size_t)(rec.S * VisRecord<kSoA>::fields(C, K)));
+      rec_i.resize((size_t)(rec.S * K));
+      rec.ix = rec_i.data();
     } else {
       rec.S = VisRecord<kSoA>::fields(C, K);
-      rec.f = rec_f.reserve((size_t)(rec.S * HW));
+      rec_f.resize((size_t)(rec.S * HW));
     }
+    rec.f = rec_f.data();
     for (int64_t v = 0; v < V; ++v) {
       if (!kSoA) rec.ix = const_cast<int32_t*>(I + v * HW * K);  // read only
       dynamic_for(H, 4, [&](int64_t i) {
@@ -2579,11 +2561,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("set_vector_path", &set_vector_path,
         "enable/disable the vector paths (AVX2: rasterize_forward's tile loop and write-out, visibility_backward's "
         "dss rule, the projection's forward and backward loops, smape_sum, the sun shader's backward; AVX-512: "
-        "visibility_backward's interior windows); returns whether they were enabled");
+        "visibility_backward's windows of 9-15 columns, the binning's box scan); returns whether they were enabled");
   m.def("vector_path_available", &vector_path_available, "whether this build and CPU have the AVX2 paths");
   m.def("set_vector_level", &set_vector_level,
-        "the highest vector level the kernels may take: 0 scalar, 1 AVX2, 2 AVX-512 (the visibility backward's "
-        "interior windows); returns the previous setting");
+        "the highest vector level the kernels may take: 0 scalar, 1 AVX2, 2 AVX-512; returns the previous setting");
   m.def("vector_level", &vector_level, "the vector level the kernels take now (0 scalar, 1 AVX2, 2 AVX-512)");
   m.def("max_vector_level", &max_vector_level, "the highest vector level this build and CPU have");
   m.def("project_splats_forward", &project_splats_forward, "EWA splat projection, forward only (CPU)");
