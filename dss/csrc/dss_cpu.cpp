@@ -1546,6 +1546,70 @@ struct VisLanes16 {
     out.any = act_any != 0;
     out.any_c = act_v != 0;
   }
+  // eval for a row in none of whose pixels k is cached (most rows: a point is cached at a few
+  // pixels around its centre, VisKRows): every lane takes case (a) or (b), found is 0, and the
+  // cache entries are read only for lanes where k becomes the front. The same operations in the
+  // same order as eval's for those lanes, so the same bits (tests compare every level with the
+  // scalar path).
+  template <class Addr>
+  DSS_AVX512 void eval_nok(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisRowOut16& out) const {
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
+    out.any = false;
+    out.any_c = false;
+    const __mmask16 m = _mm512_mask_cmp_ps_mask(oki, a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ);
+    if (m == 0) return;
+    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), r2 = a.ld(R->plane(Rec::kGn));
+    const __m512 d0m = _mm512_add_ps(d0, vmerge);
+    const __mmask16 empty = _mm512_cmplt_epi32_mask(a.ldi(R->idx_plane(0)), _mm512_setzero_si512());
+    const __m512 dxp = _mm512_sub_ps(px, vu), dyp = _mm512_sub_ps(vpy, vv);
+    const __m512 iz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(pl0, px), _mm512_mul_ps(pl1, vpy)), pl2);
+    __m512 zq = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(iz, zero, _CMP_GT_OQ), vz, _mm512_div_ps(one, iz));
+    const __m512 d2 = _mm512_add_ps(_mm512_mul_ps(dxp, dxp), _mm512_mul_ps(dyp, dyp));
+    const __m512 dz = _mm512_sub_ps(zq, vz);
+    const __mmask16 cl = _mm512_cmp_ps_mask(_mm512_mul_ps(dz, dz), _mm512_mul_ps(vslope2, d2), _CMP_GT_OQ);
+    if (cl) {
+      const __m512 dmax = _mm512_mul_ps(vslope, _mm512_sqrt_ps(d2));
+      const __m512 lo = _mm512_sub_ps(vz, dmax), hi = _mm512_add_ps(vz, dmax);
+      const __m512 mx = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(zq, lo, _CMP_LT_OQ), zq, lo);
+      const __m512 mn = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(hi, mx, _CMP_LT_OQ), mx, hi);
+      zq = _mm512_mask_blend_ps(cl, zq, mn);
+    }
+    const __mmask16 k1 = ~empty & _mm512_cmp_ps_mask(zq, d0m, _CMP_NLE_UQ);
+    __m512 gw = zero;
+    for (int64_t ch = 0; ch < C; ++ch) gw = _mm512_add_ps(gw, _mm512_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
+    __m512 den = vnk, gn = _mm512_mul_ps(vnk, gw);
+    const __mmask16 mall = k1 | _mm512_cmp_ps_mask(zq, d0, _CMP_GE_OQ);
+    den = _mm512_mask_add_ps(den, mall, den, r1);
+    gn = _mm512_mask_add_ps(gn, mall, gn, r2);
+    const __mmask16 alive = ~(mall | empty) & m;  // (lanes outside m are never used)
+    if (alive) {  // k becomes the front: entries beyond zp + T drop out
+      __m512i ie[8];
+      __m512 de[8], re[8], ge[8];
+      for (int64_t e = 0; e < K; ++e) {
+        ie[e] = a.ldi(R->idx_plane(e));
+        de[e] = a.ld(R->plane(R->fDep(e)));
+        re[e] = a.ld(R->plane(R->fRho(e)));
+        ge[e] = a.ld(R->plane(R->fGw(e)));
+      }
+      add_entries_within(ie, de, re, ge, 0, alive, _mm512_add_ps(zq, vmerge), den, gn);
+    }
+    const __m512 gsel = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(den, zero, _CMP_GT_OQ), a.ld(R->plane(Rec::kGb)),
+                                             _mm512_div_ps(gn, den));
+    const __m512 gd = _mm512_sub_ps(gsel, a.ld(R->plane(Rec::kGi)));
+    const __mmask16 act = m & _mm512_cmp_ps_mask(gd, zero, _CMP_LT_OQ);
+    const __m512 zt = _mm512_mask_blend_ps(k1, zq, d0);
+    const __m512 zt_f = _mm512_mul_ps(zt, vinvf);
+    const __m512 mx = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(px, vcx), zt_f), vX);
+    const __m512 my = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(vpy, vcy), zt_f), vY);
+    const __m512 mz = _mm512_sub_ps(zt, zq);
+    const __m512 nrm = _mm512_add_ps(
+        _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(mx, mx), _mm512_mul_ps(my, my)), _mm512_mul_ps(mz, mz)), veps);
+    const __m512 coef = _mm512_div_ps(gd, nrm);
+    out.x1 = _mm512_maskz_mul_ps(act, coef, mx);
+    out.y1 = _mm512_maskz_mul_ps(act, coef, my);
+    out.z = _mm512_maskz_mul_ps(act, coef, mz);
+    out.any = true;  // (act may be 0: adding +0 changes no partial)
+  }
 };
 
 // The window of half size w (9 <= 2 w + 1 <= 15 columns) of the point P centred on pixel (ic, jc),
@@ -1553,7 +1617,7 @@ struct VisLanes16 {
 template <int64_t KC, int64_t CC>
 DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P,
                                    const VisConsts& Q, int64_t H, int64_t W, int64_t window, int ic, int jc,
-                                   double acc[3]) {
+                                   const uint8_t* krows, double acc[3]) {
   VisLanes16<KC, CC> L;
   L.init(rec, Krt, Crt, P, Q);
   const int n = (int)(2 * window + 1), j0 = jc - (int)window;
@@ -1575,7 +1639,10 @@ DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t K
   VisRowOut16 o;
   for (int i = std::max(ic - (int)window, 0); i <= std::min(ic + (int)window, (int)H - 1); ++i) {
     a.p0 = (int64_t)i * W + j0;
-    L.eval(a, a.oki, px, _mm512_set1_ps((float)i + 0.5f), o);
+    if (krows[i - (ic - (int)window)])
+      L.eval(a, a.oki, px, _mm512_set1_ps((float)i + 0.5f), o);
+    else
+      L.eval_nok(a, a.oki, px, _mm512_set1_ps((float)i + 0.5f), o);
     if (!o.any) continue;
     // eval_scalar's order per pixel: (x1, y1), then (x2, y2, z); x2 and y2 only where some lane
     // took case (c), a minority of the rows (the other lanes hold +0, and adding +0 to a
@@ -1716,6 +1783,15 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 #endif
   static thread_local std::vector<float> rec_f;
   static thread_local std::vector<int32_t> rec_i;
+#ifdef DSS_HAVE_AVX2
+  // Per point, a flag per window row (16 bytes): non-zero where k is cached at some evaluated
+  // pixel of that row; the 16-lane walk's rows without it skip the cache scan
+  // (VisLanes16::eval_nok). Flags, not a bit mask: the record build sets them from both threads,
+  // and plain byte stores of 1 need no atomic read-modify-write (which cost a fifth of the build).
+  static thread_local std::vector<uint8_t> krows;
+  if (rows16) krows.resize((size_t)N * 16);
+  uint8_t* const kr = krows.data();  // (the vector is this thread's: the tasks use the pointer)
+#endif
   auto run = [&](auto layout) {
     constexpr bool kSoA = decltype(layout)::value;
     VisRecord<kSoA> rec;
@@ -1733,20 +1809,38 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     rec.f = rec_f.data();
     for (int64_t v = 0; v < V; ++v) {
       if (!kSoA) rec.ix = const_cast<int32_t*>(I + v * HW * K);  // read only
+#ifdef DSS_HAVE_AVX2
+      if (rows16) std::memset(kr, 0, (size_t)N * 16);
+#endif
       dynamic_for(H, 4, [&](int64_t i) {
+        // the row's pixels with a non-zero loss gradient (the only ones an evaluation reads
+        // further), found in one pass over the gradient row
+        static thread_local std::vector<int32_t> col_list;  // (this worker thread's)
+        if ((int64_t)col_list.size() < W) col_list.resize((size_t)W);
+        int32_t* const cols = col_list.data();
+        int ncols = 0;
         for (int64_t j = 0; j < W; ++j) {
-          const int64_t p = i * W + j, g = v * HW + p;
-          if (j + kPixelsAhead < W) {
-            // the cached splats' attributes are scattered rows (a miss each): fetch those of the
-            // pixel kPixelsAhead columns on while this one is built (as the blend backward does)
-            const int32_t* qi = I + (g + kPixelsAhead) * K;
-            for (int e = 0; e < K && qi[e] >= 0; ++e) __builtin_prefetch(A + (v * N + qi[e]) * C);
-          }
-          const float* gp = GR + g * C;
+          const float* gp = GR + (v * HW + i * W + j) * C;
           bool nz = false;
           for (int64_t ch = 0; ch < C; ++ch) nz |= (gp[ch] != 0.f);
-          rec.nz(p) = nz ? 1.f : 0.f;
-          if (!nz) continue;  // no evaluation reads this pixel further
+          rec.nz(i * W + j) = nz ? 1.f : 0.f;
+          cols[ncols] = (int32_t)j;
+          ncols += nz;
+        }
+        for (int c = 0; c < ncols; ++c) {
+          const int64_t j = cols[c], p = i * W + j, g = v * HW + p;
+          if (c + kPixelsAhead < ncols) {
+            // the cached splats' attributes are scattered rows (a miss each): fetch those of the
+            // pixel kPixelsAhead on while this one is built (as the blend backward does)
+            const int32_t* qi = I + (v * HW + i * W + cols[c + kPixelsAhead]) * K;
+            for (int e = 0; e < K && qi[e] >= 0; ++e) {
+              __builtin_prefetch(A + (v * N + qi[e]) * C);
+#ifdef DSS_HAVE_AVX2
+              if (rows16) __builtin_prefetch(P + (v * N + qi[e]) * kFields);
+#endif
+            }
+          }
+          const float* gp = GR + g * C;
           const int32_t* pi = I + g * K;
           const float* pd = D + g * K;
           const float* pr = Rh + g * K;
@@ -1760,6 +1854,18 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
           rec.gi(p) = gi;
           rec.gb(p) = gb;
           const float d0 = pi[0] >= 0 ? pd[0] : inf;
+#ifdef DSS_HAVE_AVX2
+          if (rows16) {
+            // mark row i of the window of every point cached here, if this pixel is in it (the
+            // window's centre pixel as the point loop computes it)
+            for (int e = 0; e < K && pi[e] >= 0; ++e) {
+              const float* sk = P + (v * N + pi[e]) * kFields;
+              const int64_t r = i - ((int64_t)std::floor(sk[1]) - window), c = j - ((int64_t)std::floor(sk[0]) - window);
+              if (r >= 0 && r <= 2 * window && c >= 0 && c <= 2 * window)
+                __atomic_store_n(&kr[(size_t)pi[e] * 16 + r], (uint8_t)1, __ATOMIC_RELAXED);
+            }
+          }
+#endif
           float gwe[8];
           for (int64_t e = 0; e < K; ++e) {
             if (kSoA) rec.idx(e, p) = pi[e];
@@ -1817,7 +1923,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 #ifdef DSS_HAVE_AVX2
           if constexpr (kSoA) {
             if (rows16) {
-              window_rows_avx512<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, acc);
+              window_rows_avx512<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, kr + (size_t)k * 16, acc);
               done = true;
             } else if (vec) {
               window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, acc);
