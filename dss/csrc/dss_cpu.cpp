@@ -1546,11 +1546,13 @@ struct VisLanes16 {
     out.any = act_any != 0;
     out.any_c = act_v != 0;
   }
-  // eval for a row in none of whose pixels k is cached (most rows: a point is cached at a few
-  // pixels around its centre, VisKRows): every lane takes case (a) or (b), found is 0, and the
-  // cache entries are read only for lanes where k becomes the front. The same operations in the
-  // same order as eval's for those lanes, so the same bits (tests compare every level with the
-  // scalar path).
+  // eval for a row in none of whose evaluated pixels k is cached (82% of the rows of a 20K-point
+  // step: a point is cached at about 3 pixels around its centre; the record build flags the
+  // others, visibility_backward's krows): found is 0 in every lane, so every lane takes case (a)
+  // or (b), and the cache entries are read only where k becomes the front. The same operations
+  // in the same order as eval's for such lanes, so the same bits (tests compare every level with
+  // the scalar path). It costs about a third of eval (session 37: eval rows 6.6 ms, these 8.9 ms
+  // for 4.5 times as many).
   template <class Addr>
   DSS_AVX512 void eval_nok(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisRowOut16& out) const {
     const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
@@ -1614,6 +1616,8 @@ struct VisLanes16 {
 
 // The window of half size w (9 <= 2 w + 1 <= 15 columns) of the point P centred on pixel (ic, jc),
 // its rows on the image one vector each; adds the window's partial sums to acc in partial order.
+// krows[r] (r = 0 .. 2 w): non-zero if P's point is cached at some evaluated pixel of window row
+// r (VisLanes16::eval), zero if not (VisLanes16::eval_nok).
 template <int64_t KC, int64_t CC>
 DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P,
                                    const VisConsts& Q, int64_t H, int64_t W, int64_t window, int ic, int jc,
@@ -1659,10 +1663,8 @@ DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t K
   _mm512_store_pd(lanes[0], sx[0]), _mm512_store_pd(lanes[0] + 8, sx[1]);
   _mm512_store_pd(lanes[1], sy[0]), _mm512_store_pd(lanes[1] + 8, sy[1]);
   _mm512_store_pd(lanes[2], sz[0]), _mm512_store_pd(lanes[2] + 8, sz[1]);
-  double part[dss_splat::kVisPartials][3];
-  for (int q = 0; q < nq; ++q)
-    for (int c = 0; c < 3; ++c) part[q][c] = lanes[c][q];
-  add_partials(part, nq, acc);
+  for (int q = 0; q < nq; ++q)  // add_partials' order, read from the lanes in place
+    for (int c = 0; c < 3; ++c) acc[c] += lanes[c][q];
 }
 
 template <int64_t KC, int64_t CC>
