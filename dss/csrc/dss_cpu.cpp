@@ -1427,6 +1427,58 @@ struct VisLanes16 {
     }
   }
 
+  // Cases (a)/(b), vis_state: k's tangent-plane depth at the pixels, clamped to kMaxSlope (the
+  // square root only where it applies); (dxp, dyp) = pixel centre - (u, v).
+  DSS_AVX512 __m512 plane_depth(__m512 px, __m512 vpy, __m512 dxp, __m512 dyp) const {
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
+    const __m512 iz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(pl0, px), _mm512_mul_ps(pl1, vpy)), pl2);
+    __m512 zq = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(iz, zero, _CMP_GT_OQ), vz, _mm512_div_ps(one, iz));
+    const __m512 d2 = _mm512_add_ps(_mm512_mul_ps(dxp, dxp), _mm512_mul_ps(dyp, dyp));
+    const __m512 dz = _mm512_sub_ps(zq, vz);
+    const __mmask16 cl = _mm512_cmp_ps_mask(_mm512_mul_ps(dz, dz), _mm512_mul_ps(vslope2, d2), _CMP_GT_OQ);
+    if (cl) {
+      const __m512 dmax = _mm512_mul_ps(vslope, _mm512_sqrt_ps(d2));
+      const __m512 lo = _mm512_sub_ps(vz, dmax), hi = _mm512_add_ps(vz, dmax);
+      const __m512 mx = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(zq, lo, _CMP_LT_OQ), zq, lo);
+      const __m512 mn = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(hi, mx, _CMP_LT_OQ), mx, hi);
+      zq = _mm512_mask_blend_ps(cl, zq, mn);
+    }
+    return zq;
+  }
+
+  // Cases (a)/(b): den, gn of the visible set with k added at plane depth zq, but for the cache
+  // entries where k becomes the front: the lanes returned, whose entries within zq + T the caller
+  // adds (add_entries_within); k1: the case (b) lanes.
+  template <class Addr>
+  DSS_AVX512 __mmask16 ab_sums(const Addr& a, __m512 zq, __m512 d0, __m512 d0m, __m512 r1, __m512 r2,
+                               __mmask16 empty, __mmask16& k1, __m512& den, __m512& gn) const {
+    k1 = ~empty & _mm512_cmp_ps_mask(zq, d0m, _CMP_NLE_UQ);
+    __m512 gw = _mm512_setzero_ps();
+    for (int64_t ch = 0; ch < C; ++ch) gw = _mm512_add_ps(gw, _mm512_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
+    den = vnk, gn = _mm512_mul_ps(vnk, gw);
+    const __mmask16 mall = k1 | _mm512_cmp_ps_mask(zq, d0, _CMP_GE_OQ);
+    den = _mm512_mask_add_ps(den, mall, den, r1);
+    gn = _mm512_mask_add_ps(gn, mall, gn, r2);
+    return ~(mall | empty);
+  }
+
+  // Cases (a)/(b)'s step towards the pixel's ray ((b), lanes k1: onto the front surface d0): b =
+  // (x, y, z) in the lanes of keep, +0 in the others.
+  DSS_AVX512 void ab_step(__m512 gd, __mmask16 k1, __m512 zp, __m512 d0, __m512 px, __m512 vpy, __mmask16 keep,
+                          __m512 b[3]) const {
+    const __m512 zt = _mm512_mask_blend_ps(k1, zp, d0);
+    const __m512 zt_f = _mm512_mul_ps(zt, vinvf);
+    const __m512 mx = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(px, vcx), zt_f), vX);
+    const __m512 my = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(vpy, vcy), zt_f), vY);
+    const __m512 mz = _mm512_sub_ps(zt, zp);
+    const __m512 nrm = _mm512_add_ps(
+        _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(mx, mx), _mm512_mul_ps(my, my)), _mm512_mul_ps(mz, mz)), veps);
+    const __m512 coef = _mm512_div_ps(gd, nrm);
+    b[0] = _mm512_maskz_mul_ps(keep, coef, mx);
+    b[1] = _mm512_maskz_mul_ps(keep, coef, my);
+    b[2] = _mm512_maskz_mul_ps(keep, coef, mz);
+  }
+
   // The evaluations of one window row (lanes in oki); (px, py) the pixel centres. Comments on
   // the cases: VisLanes::eval and vis_state.
   template <class Addr>
@@ -1468,26 +1520,10 @@ struct VisLanes16 {
       gn = _mm512_mask_blend_ps(ek0, gn_a, gn_b);
     }
     if (m & ~kvis) {
-      const __m512 iz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(pl0, px), _mm512_mul_ps(pl1, vpy)), pl2);
-      __m512 zq = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(iz, zero, _CMP_GT_OQ), vz, _mm512_div_ps(one, iz));
-      const __m512 d2 = _mm512_add_ps(_mm512_mul_ps(dxp, dxp), _mm512_mul_ps(dyp, dyp));
-      const __m512 dz = _mm512_sub_ps(zq, vz);
-      const __mmask16 cl = _mm512_cmp_ps_mask(_mm512_mul_ps(dz, dz), _mm512_mul_ps(vslope2, d2), _CMP_GT_OQ);
-      if (cl) {
-        const __m512 dmax = _mm512_mul_ps(vslope, _mm512_sqrt_ps(d2));
-        const __m512 lo = _mm512_sub_ps(vz, dmax), hi = _mm512_add_ps(vz, dmax);
-        const __m512 mx = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(zq, lo, _CMP_LT_OQ), zq, lo);
-        const __m512 mn = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(hi, mx, _CMP_LT_OQ), mx, hi);
-        zq = _mm512_mask_blend_ps(cl, zq, mn);
-      }
-      const __mmask16 k1 = ~empty & _mm512_cmp_ps_mask(zq, d0m, _CMP_NLE_UQ);
-      __m512 gw = zero;
-      for (int64_t ch = 0; ch < C; ++ch) gw = _mm512_add_ps(gw, _mm512_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
-      __m512 den_n = vnk, gn_n = _mm512_mul_ps(vnk, gw);
-      const __mmask16 mall = k1 | _mm512_cmp_ps_mask(zq, d0, _CMP_GE_OQ);
-      den_n = _mm512_mask_add_ps(den_n, mall, den_n, r1);
-      gn_n = _mm512_mask_add_ps(gn_n, mall, gn_n, r2);
-      const __mmask16 alive = ~(mall | empty);
+      const __m512 zq = plane_depth(px, vpy, dxp, dyp);
+      __mmask16 k1;
+      __m512 den_n, gn_n;
+      const __mmask16 alive = ab_sums(a, zq, d0, d0m, r1, r2, empty, k1, den_n, gn_n);
       if (alive) add_entries_within(ie, de, re, ge, 0, alive, _mm512_add_ps(zq, vmerge), den_n, gn_n);
       den = _mm512_mask_blend_ps(kvis, den_n, den);
       gn = _mm512_mask_blend_ps(kvis, gn_n, gn);
@@ -1524,19 +1560,7 @@ struct VisLanes16 {
         c[mm][1] = _mm512_mul_ps(coef, my);
       }
     }
-    if (act_n) {
-      const __m512 zt = _mm512_mask_blend_ps(kase1, zp, d0);
-      const __m512 zt_f = _mm512_mul_ps(zt, vinvf);
-      const __m512 mx = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(px, vcx), zt_f), vX);
-      const __m512 my = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(vpy, vcy), zt_f), vY);
-      const __m512 mz = _mm512_sub_ps(zt, zp);
-      const __m512 nrm = _mm512_add_ps(
-          _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(mx, mx), _mm512_mul_ps(my, my)), _mm512_mul_ps(mz, mz)), veps);
-      const __m512 coef = _mm512_div_ps(gd, nrm);
-      b[0] = _mm512_mul_ps(coef, mx);
-      b[1] = _mm512_mul_ps(coef, my);
-      b[2] = _mm512_mul_ps(coef, mz);
-    }
+    if (act_n) ab_step(gd, kase1, zp, d0, px, vpy, act_n, b);
     const __mmask16 act_any = act_v | act_n;
     out.x1 = _mm512_maskz_mov_ps(act_any, _mm512_mask_blend_ps(kvis, b[0], c[0][0]));
     out.y1 = _mm512_maskz_mov_ps(act_any, _mm512_mask_blend_ps(kvis, b[1], c[0][1]));
@@ -1555,7 +1579,7 @@ struct VisLanes16 {
   // for 4.5 times as many).
   template <class Addr>
   DSS_AVX512 void eval_nok(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisRowOut16& out) const {
-    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
+    const __m512 zero = _mm512_setzero_ps();
     out.any = false;
     out.any_c = false;
     const __mmask16 m = _mm512_mask_cmp_ps_mask(oki, a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ);
@@ -1564,26 +1588,10 @@ struct VisLanes16 {
     const __m512 d0m = _mm512_add_ps(d0, vmerge);
     const __mmask16 empty = _mm512_cmplt_epi32_mask(a.ldi(R->idx_plane(0)), _mm512_setzero_si512());
     const __m512 dxp = _mm512_sub_ps(px, vu), dyp = _mm512_sub_ps(vpy, vv);
-    const __m512 iz = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(pl0, px), _mm512_mul_ps(pl1, vpy)), pl2);
-    __m512 zq = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(iz, zero, _CMP_GT_OQ), vz, _mm512_div_ps(one, iz));
-    const __m512 d2 = _mm512_add_ps(_mm512_mul_ps(dxp, dxp), _mm512_mul_ps(dyp, dyp));
-    const __m512 dz = _mm512_sub_ps(zq, vz);
-    const __mmask16 cl = _mm512_cmp_ps_mask(_mm512_mul_ps(dz, dz), _mm512_mul_ps(vslope2, d2), _CMP_GT_OQ);
-    if (cl) {
-      const __m512 dmax = _mm512_mul_ps(vslope, _mm512_sqrt_ps(d2));
-      const __m512 lo = _mm512_sub_ps(vz, dmax), hi = _mm512_add_ps(vz, dmax);
-      const __m512 mx = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(zq, lo, _CMP_LT_OQ), zq, lo);
-      const __m512 mn = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(hi, mx, _CMP_LT_OQ), mx, hi);
-      zq = _mm512_mask_blend_ps(cl, zq, mn);
-    }
-    const __mmask16 k1 = ~empty & _mm512_cmp_ps_mask(zq, d0m, _CMP_NLE_UQ);
-    __m512 gw = zero;
-    for (int64_t ch = 0; ch < C; ++ch) gw = _mm512_add_ps(gw, _mm512_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
-    __m512 den = vnk, gn = _mm512_mul_ps(vnk, gw);
-    const __mmask16 mall = k1 | _mm512_cmp_ps_mask(zq, d0, _CMP_GE_OQ);
-    den = _mm512_mask_add_ps(den, mall, den, r1);
-    gn = _mm512_mask_add_ps(gn, mall, gn, r2);
-    const __mmask16 alive = ~(mall | empty) & m;  // (lanes outside m are never used)
+    const __m512 zq = plane_depth(px, vpy, dxp, dyp);
+    __mmask16 k1;
+    __m512 den, gn;
+    const __mmask16 alive = ab_sums(a, zq, d0, d0m, r1, r2, empty, k1, den, gn);
     if (alive) {  // k becomes the front: entries beyond zp + T drop out
       __m512i ie[8];
       __m512 de[8], re[8], ge[8];
@@ -1599,17 +1607,11 @@ struct VisLanes16 {
                                              _mm512_div_ps(gn, den));
     const __m512 gd = _mm512_sub_ps(gsel, a.ld(R->plane(Rec::kGi)));
     const __mmask16 act = m & _mm512_cmp_ps_mask(gd, zero, _CMP_LT_OQ);
-    const __m512 zt = _mm512_mask_blend_ps(k1, zq, d0);
-    const __m512 zt_f = _mm512_mul_ps(zt, vinvf);
-    const __m512 mx = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(px, vcx), zt_f), vX);
-    const __m512 my = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(vpy, vcy), zt_f), vY);
-    const __m512 mz = _mm512_sub_ps(zt, zq);
-    const __m512 nrm = _mm512_add_ps(
-        _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(mx, mx), _mm512_mul_ps(my, my)), _mm512_mul_ps(mz, mz)), veps);
-    const __m512 coef = _mm512_div_ps(gd, nrm);
-    out.x1 = _mm512_maskz_mul_ps(act, coef, mx);
-    out.y1 = _mm512_maskz_mul_ps(act, coef, my);
-    out.z = _mm512_maskz_mul_ps(act, coef, mz);
+    __m512 b[3];
+    ab_step(gd, k1, zq, d0, px, vpy, act, b);
+    out.x1 = b[0];
+    out.y1 = b[1];
+    out.z = b[2];
     out.any = true;  // (act may be 0: adding +0 changes no partial)
   }
 };
