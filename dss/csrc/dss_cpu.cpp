@@ -1367,8 +1367,10 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
 // (tests/test_render_backward.py compares every vector level with the scalar path). Against the
 // 8-lane walk, 1.34x on the 20K position step's visibility backward (2 cores, Zen 5). (A walk
 // that packed a window's pixels 16 at a time in row-major order, 5 vectors and one pixel per 9 x 9
-// window instead of 9 vectors, was 1.07x slower: each vector read 2-3 row runs per plane, and
-// the loads, not the arithmetic, bound this kernel.)
+// window instead of 9 vectors, was 1.07x slower: each vector read 2-3 row runs per plane and
+// moved its lanes to their columns' partials.) A row costs about 80 cycles, bound by its chain
+// of three divisions and the comparisons between them (session 37, docs/performance.md); rows
+// where the point is not cached take eval_nok, about a third of eval.
 struct VisRowOut16 {
   __m512 x1, y1, x2, y2, z;
   bool any;
