@@ -146,6 +146,9 @@ def run(argv=None) -> dict:
                     help="git revision whose dss_cpu.cpp is the baseline, or 'scalar' / 'avx2': the working "
                          "tree's own kernel with its vector paths off (set_vector_level(0)) / with the AVX2 "
                          "paths only (set_vector_level(1), no AVX-512)")
+    ap.add_argument("--level", type=int, choices=(0, 1, 2), default=None,
+                    help="with a git revision as --base: run both builds at this vector level "
+                         "(set_vector_level; 1: the AVX2 paths, as on a CPU without AVX-512)")
     ap.add_argument("--kind", choices=("position", "normal"), default="position")
     ap.add_argument("--points", type=int, default=20000)
     ap.add_argument("--views", type=int, default=12)
@@ -182,6 +185,11 @@ def run(argv=None) -> dict:
         mods = {k: build(f"dss_ab_{k}", text, Path(tmp), headers[k]) for k, text in sources.items()}
         if own is not None:
             mods["base"].set_vector_level(own)
+        elif args.level is not None:
+            for mod in mods.values():
+                if not hasattr(mod, "set_vector_level"):
+                    raise SystemExit(f"--level: the build of {args.base} has no set_vector_level")
+                mod.set_vector_level(args.level)
         junk = torch.zeros(max(args.evict_mb, 0) << 18)  # float32: 2^18 per MB
         fns = {k: getattr(mod, args.kernel) for k, mod in mods.items()}
         mod_args = {k: accepted_args(fn, call_args) for k, fn in fns.items()}
@@ -198,7 +206,8 @@ def run(argv=None) -> dict:
               "kind": args.kind, "points": args.points,
               "window": call_args[VIS_WINDOW_ARG] if args.kernel == "visibility_backward" else None,
               "views": args.views, "image_size": args.image_size, "threads": args.threads,
-              "evict_mb": args.evict_mb,
+              "evict_mb": args.evict_mb, "vector_level": {k: int(m.vector_level()) for k, m in mods.items()}
+              if all(hasattr(m, "vector_level") for m in mods.values()) else None,
               "median_ms": med, "speedup": med["base"] / med["work"], "runs_ms": times,
               "command": command_line("python -m experiments.ab_kernels", argv)}
     print(f"{args.kernel}, {args.points} points, {args.threads} thread(s): base {args.base} {med['base']:.2f} ms, "

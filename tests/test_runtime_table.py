@@ -163,8 +163,14 @@ def test_ab_kernels_times_two_builds_on_captured_inputs(tmp_path, cpp_backend):
 
     out = tmp_path / "ab.json"
     r = ab_kernels.run(["--kernel", "blend_backward", "--base", "HEAD", "--points", "1500", "--views", "2",
-                        "--image-size", "32", "--reps", "3", "--skip", "1", "--evict-mb", "2", "--out", str(out)])
+                        "--image-size", "32", "--reps", "3", "--skip", "1", "--evict-mb", "2", "--level", "1",
+                        "--out", str(out)])
     assert set(r["median_ms"]) == {"base", "work"} and all(v > 0 for v in r["median_ms"].values())
+    # --level: both builds at that vector level (capped at what this CPU has)
+    from dss import _ext
+
+    level = min(1, _ext.load_cpu().max_vector_level())
+    assert r["vector_level"] == {"base": level, "work": level}
     assert len(r["runs_ms"]["base"]) == 3 and r["speedup"] > 0
     assert json.loads(out.read_text())["kernel"] == "blend_backward" and r["evict_mb"] == 2
     with pytest.raises(SystemExit, match="git show"):

@@ -1112,6 +1112,57 @@ struct VisLanes {
     }
   }
 
+  // Cases (a)/(b), vis_state: k's tangent-plane depth at the pixels, clamped to kMaxSlope (the
+  // square root only where it applies); (dxp, dyp) = pixel centre - (u, v).
+  DSS_AVX2 __m256 plane_depth(__m256 px, __m256 vpy, __m256 dxp, __m256 dyp) const {
+    const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.f);
+    const __m256 iz = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(pl0, px), _mm256_mul_ps(pl1, vpy)), pl2);
+    __m256 zq = _mm256_blendv_ps(vz, _mm256_div_ps(one, iz), _mm256_cmp_ps(iz, zero, _CMP_GT_OQ));
+    const __m256 d2 = _mm256_add_ps(_mm256_mul_ps(dxp, dxp), _mm256_mul_ps(dyp, dyp));
+    const __m256 dz = _mm256_sub_ps(zq, vz);
+    const __m256 cl = _mm256_cmp_ps(_mm256_mul_ps(dz, dz), _mm256_mul_ps(vslope2, d2), _CMP_GT_OQ);
+    if (_mm256_movemask_ps(cl)) {
+      const __m256 dmax = _mm256_mul_ps(vslope, _mm256_sqrt_ps(d2));
+      const __m256 lo = _mm256_sub_ps(vz, dmax), hi = _mm256_add_ps(vz, dmax);
+      const __m256 mx = _mm256_blendv_ps(zq, lo, _mm256_cmp_ps(zq, lo, _CMP_LT_OQ));  // std::max(zq, lo)
+      const __m256 mn = _mm256_blendv_ps(mx, hi, _mm256_cmp_ps(hi, mx, _CMP_LT_OQ));  // std::min(mx, hi)
+      zq = _mm256_blendv_ps(zq, mn, cl);
+    }
+    return zq;
+  }
+
+  // Cases (a)/(b): den, gn of the visible set with k added at plane depth zq, but for the cache
+  // entries where k becomes the front: the lanes returned, whose entries within zq + T the caller
+  // adds (add_entries_within); k1: the case (b) lanes.
+  template <class Addr>
+  DSS_AVX2 __m256 ab_sums(const Addr& a, __m256 zq, __m256 d0, __m256 d0m, __m256 r1, __m256 r2, __m256 empty,
+                          __m256& k1, __m256& den, __m256& gn) const {
+    k1 = _mm256_andnot_ps(empty, _mm256_cmp_ps(zq, d0m, _CMP_NLE_UQ));
+    __m256 gw = _mm256_setzero_ps();
+    for (int64_t ch = 0; ch < C; ++ch) gw = _mm256_add_ps(gw, _mm256_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
+    den = vnk, gn = _mm256_mul_ps(vnk, gw);
+    const __m256 mall = _mm256_or_ps(k1, _mm256_cmp_ps(zq, d0, _CMP_GE_OQ));
+    den = _mm256_blendv_ps(den, _mm256_add_ps(den, r1), mall);
+    gn = _mm256_blendv_ps(gn, _mm256_add_ps(gn, r2), mall);
+    return _mm256_andnot_ps(_mm256_or_ps(mall, empty), _mm256_castsi256_ps(_mm256_set1_epi32(-1)));
+  }
+
+  // Cases (a)/(b)'s step towards the pixel's ray ((b), lanes k1: onto the front surface d0), in
+  // every lane: b = (x, y, z).
+  DSS_AVX2 void ab_step(__m256 gd, __m256 k1, __m256 zp, __m256 d0, __m256 px, __m256 vpy, __m256 b[3]) const {
+    const __m256 zt = _mm256_blendv_ps(zp, d0, k1);
+    const __m256 zt_f = _mm256_mul_ps(zt, vinvf);
+    const __m256 mx = _mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(px, vcx), zt_f), vX);
+    const __m256 my = _mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(vpy, vcy), zt_f), vY);
+    const __m256 mz = _mm256_sub_ps(zt, zp);
+    const __m256 nrm = _mm256_add_ps(
+        _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(mx, mx), _mm256_mul_ps(my, my)), _mm256_mul_ps(mz, mz)), veps);
+    const __m256 coef = _mm256_div_ps(gd, nrm);
+    b[0] = _mm256_mul_ps(coef, mx);
+    b[1] = _mm256_mul_ps(coef, my);
+    b[2] = _mm256_mul_ps(coef, mz);
+  }
+
   // The 8 evaluations of one chunk; (px, py) the pixel centres.
   template <class Addr>
   DSS_AVX2 void eval(const Addr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
@@ -1152,26 +1203,9 @@ struct VisLanes {
       gn = _mm256_blendv_ps(gn_a, gn_b, ek0);
     }
     if (_mm256_movemask_ps(_mm256_andnot_ps(kvis, m))) {  // (a)/(b): k's clamped plane depth decides
-      const __m256 iz = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(pl0, px), _mm256_mul_ps(pl1, vpy)), pl2);
-      __m256 zq = _mm256_blendv_ps(vz, _mm256_div_ps(one, iz), _mm256_cmp_ps(iz, zero, _CMP_GT_OQ));
-      const __m256 d2 = _mm256_add_ps(_mm256_mul_ps(dxp, dxp), _mm256_mul_ps(dyp, dyp));
-      const __m256 dz = _mm256_sub_ps(zq, vz);
-      const __m256 cl = _mm256_cmp_ps(_mm256_mul_ps(dz, dz), _mm256_mul_ps(vslope2, d2), _CMP_GT_OQ);
-      if (_mm256_movemask_ps(cl)) {
-        const __m256 dmax = _mm256_mul_ps(vslope, _mm256_sqrt_ps(d2));
-        const __m256 lo = _mm256_sub_ps(vz, dmax), hi = _mm256_add_ps(vz, dmax);
-        const __m256 mx = _mm256_blendv_ps(zq, lo, _mm256_cmp_ps(zq, lo, _CMP_LT_OQ));  // std::max(zq, lo)
-        const __m256 mn = _mm256_blendv_ps(mx, hi, _mm256_cmp_ps(hi, mx, _CMP_LT_OQ));  // std::min(mx, hi)
-        zq = _mm256_blendv_ps(zq, mn, cl);
-      }
-      const __m256 k1 = _mm256_andnot_ps(empty, _mm256_cmp_ps(zq, d0m, _CMP_NLE_UQ));
-      __m256 gw = zero;
-      for (int64_t ch = 0; ch < C; ++ch) gw = _mm256_add_ps(gw, _mm256_mul_ps(a.ld(R->plane(R->fG(ch))), wk[ch]));
-      __m256 den_n = vnk, gn_n = _mm256_mul_ps(vnk, gw);
-      const __m256 mall = _mm256_or_ps(k1, _mm256_cmp_ps(zq, d0, _CMP_GE_OQ));
-      den_n = _mm256_blendv_ps(den_n, _mm256_add_ps(den_n, r1), mall);
-      gn_n = _mm256_blendv_ps(gn_n, _mm256_add_ps(gn_n, r2), mall);
-      __m256 alive = _mm256_andnot_ps(_mm256_or_ps(mall, empty), _mm256_castsi256_ps(minus1));
+      const __m256 zq = plane_depth(px, vpy, dxp, dyp);
+      __m256 k1, den_n, gn_n;
+      const __m256 alive = ab_sums(a, zq, d0, d0m, r1, r2, empty, k1, den_n, gn_n);
       if (_mm256_movemask_ps(alive))  // k becomes the front: entries beyond zp + T drop out
         add_entries_within(ie, de, re, ge, 0, alive, _mm256_add_ps(zq, vmerge), den_n, gn_n);
       den = _mm256_blendv_ps(den_n, den, kvis);
@@ -1208,19 +1242,7 @@ struct VisLanes {
         c[mm][1] = _mm256_mul_ps(coef, my);
       }
     }
-    if (_mm256_movemask_ps(act_n)) {  // (a)/(b): towards the pixel's ray, (b) onto the front surface
-      const __m256 zt = _mm256_blendv_ps(zp, d0, kase1);
-      const __m256 zt_f = _mm256_mul_ps(zt, vinvf);
-      const __m256 mx = _mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(px, vcx), zt_f), vX);
-      const __m256 my = _mm256_sub_ps(_mm256_mul_ps(_mm256_sub_ps(vpy, vcy), zt_f), vY);
-      const __m256 mz = _mm256_sub_ps(zt, zp);
-      const __m256 nrm = _mm256_add_ps(
-          _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(mx, mx), _mm256_mul_ps(my, my)), _mm256_mul_ps(mz, mz)), veps);
-      const __m256 coef = _mm256_div_ps(gd, nrm);
-      b[0] = _mm256_mul_ps(coef, mx);
-      b[1] = _mm256_mul_ps(coef, my);
-      b[2] = _mm256_mul_ps(coef, mz);
-    }
+    if (_mm256_movemask_ps(act_n)) ab_step(gd, kase1, zp, d0, px, vpy, b);  // (a)/(b): towards the pixel's ray
     // a section's inactive lanes may hold anything (it ran for the others): keep the active ones
     const __m256 act_any = _mm256_or_ps(act_v, act_n);
     out.x1 = _mm256_and_ps(act_any, _mm256_blendv_ps(b[0], c[0][0], kvis));
@@ -1229,6 +1251,45 @@ struct VisLanes {
     out.y2 = _mm256_and_ps(act_v, c[1][1]);
     out.z = _mm256_and_ps(act_n, b[2]);
     out.any = _mm256_movemask_ps(act_any) != 0;
+  }
+  // eval for a chunk in none of whose pixels k is cached (VisLanes16::eval_nok in 8 lanes): every
+  // lane takes case (a) or (b); eval's operations for such lanes, so the same bits.
+  template <class Addr>
+  DSS_AVX2 void eval_nok(const Addr& a, __m256 px, __m256 vpy, VisChunkOut& out) const {
+    const __m256 zero = _mm256_setzero_ps();
+    out.any = false;
+    const __m256 m = _mm256_and_ps(_mm256_castsi256_ps(a.oki), _mm256_cmp_ps(a.ld(R->plane(Rec::kNZ)), zero, _CMP_NEQ_UQ));
+    if (_mm256_movemask_ps(m) == 0) return;
+    const __m256 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), r2 = a.ld(R->plane(Rec::kGn));
+    const __m256 d0m = _mm256_add_ps(d0, vmerge);
+    const __m256 empty = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_setzero_si256(), a.ldi(R->idx_plane(0))));
+    const __m256 dxp = _mm256_sub_ps(px, vu), dyp = _mm256_sub_ps(vpy, vv);
+    const __m256 zq = plane_depth(px, vpy, dxp, dyp);
+    __m256 k1, den, gn;
+    const __m256 alive = ab_sums(a, zq, d0, d0m, r1, r2, empty, k1, den, gn);
+    if (_mm256_movemask_ps(alive)) {  // k becomes the front: entries beyond zp + T drop out
+      __m256i ie[8];
+      __m256 de[8], re[8], ge[8];
+      for (int64_t e = 0; e < K; ++e) {
+        ie[e] = a.ldi(R->idx_plane(e));
+        de[e] = a.ld(R->plane(R->fDep(e)));
+        re[e] = a.ld(R->plane(R->fRho(e)));
+        ge[e] = a.ld(R->plane(R->fGw(e)));
+      }
+      add_entries_within(ie, de, re, ge, 0, alive, _mm256_add_ps(zq, vmerge), den, gn);
+    }
+    const __m256 gsel = _mm256_blendv_ps(a.ld(R->plane(Rec::kGb)), _mm256_div_ps(gn, den), _mm256_cmp_ps(den, zero, _CMP_GT_OQ));
+    const __m256 gd = _mm256_sub_ps(gsel, a.ld(R->plane(Rec::kGi)));
+    const __m256 act = _mm256_and_ps(m, _mm256_cmp_ps(gd, zero, _CMP_LT_OQ));  // Eq. filteredG
+    if (_mm256_movemask_ps(act) == 0) return;
+    __m256 b[3];
+    ab_step(gd, k1, zq, d0, px, vpy, b);
+    out.x1 = _mm256_and_ps(act, b[0]);
+    out.y1 = _mm256_and_ps(act, b[1]);
+    out.x2 = zero;
+    out.y2 = zero;
+    out.z = _mm256_and_ps(act, b[2]);
+    out.any = true;
   }
 };
 
@@ -1302,8 +1363,8 @@ struct VisFlatPlan {
 template <int64_t KC, int64_t CC>
 DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, KC, CC>& rec, int64_t Krt,
                                int64_t Crt, const VisPoint& P, const VisConsts& Q, const VisFlatPlan& F, int64_t W,
-                               int64_t window, int ic, int jc, __m256d* sx, __m256d* sy, __m256d* sz,
-                               double (*part)[3]) {
+                               int64_t window, int ic, int jc, const uint8_t* krows, __m256d* sx, __m256d* sy,
+                               __m256d* sz, double (*part)[3]) {
   const int64_t corner = (int64_t)(ic - window) * W + (jc - window);
   const __m256i vj0 = _mm256_set1_epi32(jc - (int)window), vi0 = _mm256_set1_epi32(ic - (int)window);
   const __m256 half = _mm256_set1_ps(0.5f);
@@ -1318,14 +1379,17 @@ DSS_AVX2 void window_flat_avx2(const VisLanes<KC, CC>& L, const VisRecord<true, 
         _mm256_cvtepi32_ps(_mm256_add_epi32(vj0, _mm256_load_si256((const __m256i*)F.col[c]))), half);
     const __m256 py = _mm256_add_ps(
         _mm256_cvtepi32_ps(_mm256_add_epi32(vi0, _mm256_load_si256((const __m256i*)F.row[c]))), half);
+    // k cached in one of the chunk's rows (krows, window_rows_avx512), or no flags: eval
+    const int r0 = F.row[c][0];
+    const bool cached = !krows || krows[r0] || (F.split[c] && krows[r0 + 1]);
     if (F.split[c]) {
       a.p0 = corner + F.p0[c];
       a.p1 = corner + F.p1[c];
       a.hi = _mm256_castsi256_ps(_mm256_load_si256((const __m256i*)F.hi[c]));
-      L.eval(a, px, py, o);
+      cached ? L.eval(a, px, py, o) : L.eval_nok(a, px, py, o);
     } else {
       in_row.p0 = corner + F.p0[c];
-      L.eval(in_row, px, py, o);
+      cached ? L.eval(in_row, px, py, o) : L.eval_nok(in_row, px, py, o);
     }
     if (!o.any) continue;
     const __m256i pm = _mm256_load_si256((const __m256i*)F.perm[c]);
@@ -1674,7 +1738,7 @@ DSS_AVX512 void window_rows_avx512(const VisRecord<true, KC, CC>& rec, int64_t K
 template <int64_t KC, int64_t CC>
 DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, int64_t Crt, const VisPoint& P, const VisConsts& Q,
                               int64_t H, int64_t W, int64_t window, int ic, int jc, const VisFlatPlan* flat,
-                              double acc[3]) {
+                              const uint8_t* krows, double acc[3]) {
   VisLanes<KC, CC> L;
   L.init(rec, Krt, Crt, P, Q);
   const int mw = dss_splat::vis_window_runs(window);  // a row's first mw pixels in runs of 8
@@ -1688,7 +1752,7 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
   double part[dss_splat::kVisPartials][3] = {};
   // interior windows of 9 to 15 columns in chunks across rows; the others row by row
   if (flat && ic - window >= 0 && ic + window < H && jc - window >= 0 && jc + window < W) {
-    window_flat_avx2<KC, CC>(L, rec, Krt, Crt, P, Q, *flat, W, window, ic, jc, sx, sy, sz, part);
+    window_flat_avx2<KC, CC>(L, rec, Krt, Crt, P, Q, *flat, W, window, ic, jc, krows, sx, sy, sz, part);
   } else {
     for (int64_t i = ic - window; i <= ic + window; ++i) {
       if (i < 0 || i >= H) continue;
@@ -1700,7 +1764,10 @@ DSS_AVX2 void window_dss_avx2(const VisRecord<true, KC, CC>& rec, int64_t Krt, i
         a.masked = !(j0 >= 0 && j0 + 8 <= W);
         a.p0 = i * W + j0;
         a.oki = _mm256_and_si256(_mm256_cmpgt_epi32(vj, minus1), _mm256_cmpgt_epi32(vW, vj));
-        L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
+        if (!krows || krows[i - (ic - window)])
+          L.eval(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
+        else
+          L.eval_nok(a, _mm256_add_ps(_mm256_cvtepi32_ps(vj), half), _mm256_set1_ps(py), o);
         if (o.any) {
           add_lanes(sx[0], sx[1], o.x1);
           add_lanes(sy[0], sy[1], o.y1);
@@ -1790,12 +1857,14 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   static thread_local std::vector<float> rec_f;
   static thread_local std::vector<int32_t> rec_i;
 #ifdef DSS_HAVE_AVX2
-  // Per point, a flag per window row (16 bytes): non-zero where k is cached at some evaluated
-  // pixel of that row; the 16-lane walk's rows without it skip the cache scan
-  // (VisLanes16::eval_nok). Flags, not a bit mask: the record build sets them from both threads,
-  // and plain byte stores of 1 need no atomic read-modify-write (which cost a fifth of the build).
+  // Per point, a flag per window row (16 bytes; windows of 9 to 15 rows): non-zero where k is
+  // cached at some evaluated pixel of that row; the vector walks' rows (chunks) without it skip
+  // the cache scan (VisLanes16::eval_nok, VisLanes::eval_nok). Flags, not a bit mask: the record
+  // build sets them from both threads, and plain byte stores of 1 need no atomic
+  // read-modify-write (which cost a fifth of the build).
+  const bool kf = vec && window >= 4 && window <= 7;
   static thread_local std::vector<uint8_t> krows;
-  if (rows16) krows.resize((size_t)N * 16);
+  if (kf) krows.resize((size_t)N * 16);
   uint8_t* const kr = krows.data();  // (the vector is this thread's: the tasks use the pointer)
 #endif
   auto run = [&](auto layout) {
@@ -1816,7 +1885,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     for (int64_t v = 0; v < V; ++v) {
       if (!kSoA) rec.ix = const_cast<int32_t*>(I + v * HW * K);  // read only
 #ifdef DSS_HAVE_AVX2
-      if (rows16) std::memset(kr, 0, (size_t)N * 16);
+      if (kf) std::memset(kr, 0, (size_t)N * 16);
 #endif
       dynamic_for(H, 4, [&](int64_t i) {
         // the row's pixels with a non-zero loss gradient (the only ones an evaluation reads
@@ -1842,7 +1911,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
             for (int e = 0; e < K && qi[e] >= 0; ++e) {
               __builtin_prefetch(A + (v * N + qi[e]) * C);
 #ifdef DSS_HAVE_AVX2
-              if (rows16) __builtin_prefetch(P + (v * N + qi[e]) * kFields);
+              if (kf) __builtin_prefetch(P + (v * N + qi[e]) * kFields);
 #endif
             }
           }
@@ -1861,7 +1930,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
           rec.gb(p) = gb;
           const float d0 = pi[0] >= 0 ? pd[0] : inf;
 #ifdef DSS_HAVE_AVX2
-          if (rows16) {
+          if (kf) {
             // mark row i of the window of every point cached here, if this pixel is in it (the
             // window's centre pixel as the point loop computes it)
             for (int e = 0; e < K && pi[e] >= 0; ++e) {
@@ -1932,7 +2001,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
               window_rows_avx512<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, kr + (size_t)k * 16, acc);
               done = true;
             } else if (vec) {
-              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, acc);
+              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, kf ? kr + (size_t)k * 16 : nullptr,
+                                      acc);
               done = true;
             }
           }
