@@ -1581,7 +1581,8 @@ struct VisLanes16 {
       const __m512 gn_a = _mm512_sub_ps(r2, _mm512_mul_ps(prk, pgk));
       den_a = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(den_a, zero, _CMP_GT_OQ), den_a);
       __m512 den_b = zero, gn_b = zero;
-      if (K > 1) add_entries_within(ie, de, re, ge, 1, (__mmask16)0xFFFF, _mm512_add_ps(de[1], vmerge), den_b, gn_b);
+      if (K > 1 && (ek0 & kvis & m))  // (only where k was the front)
+        add_entries_within(ie, de, re, ge, 1, (__mmask16)0xFFFF, _mm512_add_ps(de[1], vmerge), den_b, gn_b);
       den = _mm512_mask_blend_ps(ek0, den_a, den_b);
       gn = _mm512_mask_blend_ps(ek0, gn_a, gn_b);
     }
