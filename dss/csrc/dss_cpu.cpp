@@ -49,6 +49,8 @@ constexpr int kDepthBuckets = 1024;
 // How far ahead the pixel loops of the backward passes prefetch the rows of the splats cached at
 // a pixel: pixels along a row (visibility backward), pixels of the visit list (blend backward).
 constexpr int64_t kPixelsAhead = 8;
+// The visibility backward's per-point row flags: one byte per window row, windows of up to 15 rows.
+constexpr int64_t kFlagRows = 16;
 
 using dss_splat::Box;  // a splat's pixel box (splat_math.h)
 
@@ -1858,14 +1860,14 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   static thread_local std::vector<float> rec_f;
   static thread_local std::vector<int32_t> rec_i;
 #ifdef DSS_HAVE_AVX2
-  // Per point, a flag per window row (16 bytes; windows of 9 to 15 rows): non-zero where k is
+  // Per point, a flag per window row (kFlagRows bytes; windows of 9 to 15 rows): non-zero where k is
   // cached at some evaluated pixel of that row; the vector walks' rows (chunks) without it skip
   // the cache scan (VisLanes16::eval_nok, VisLanes::eval_nok). Flags, not a bit mask: the record
   // build sets them from both threads, and plain byte stores of 1 need no atomic
   // read-modify-write (which cost a fifth of the build).
-  const bool kf = vec && window >= 4 && window <= 7;
+  const bool kf = vec && window >= 4 && 2 * window + 1 <= kFlagRows;
   static thread_local std::vector<uint8_t> krows;
-  if (kf) krows.resize((size_t)N * 16);
+  if (kf) krows.resize((size_t)(N * kFlagRows));
   uint8_t* const kr = krows.data();  // (the vector is this thread's: the tasks use the pointer)
 #endif
   auto run = [&](auto layout) {
@@ -1886,7 +1888,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
     for (int64_t v = 0; v < V; ++v) {
       if (!kSoA) rec.ix = const_cast<int32_t*>(I + v * HW * K);  // read only
 #ifdef DSS_HAVE_AVX2
-      if (kf) std::memset(kr, 0, (size_t)N * 16);
+      if (kf) std::memset(kr, 0, (size_t)(N * kFlagRows));
 #endif
       dynamic_for(H, 4, [&](int64_t i) {
         // the row's pixels with a non-zero loss gradient (the only ones an evaluation reads
@@ -1938,7 +1940,7 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
               const float* sk = P + (v * N + pi[e]) * kFields;
               const int64_t r = i - ((int64_t)std::floor(sk[1]) - window), c = j - ((int64_t)std::floor(sk[0]) - window);
               if (r >= 0 && r <= 2 * window && c >= 0 && c <= 2 * window)
-                __atomic_store_n(&kr[(size_t)pi[e] * 16 + r], (uint8_t)1, __ATOMIC_RELAXED);
+                __atomic_store_n(&kr[pi[e] * kFlagRows + r], (uint8_t)1, __ATOMIC_RELAXED);
             }
           }
 #endif
@@ -1999,10 +2001,10 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
 #ifdef DSS_HAVE_AVX2
           if constexpr (kSoA) {
             if (rows16) {
-              window_rows_avx512<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, kr + (size_t)k * 16, acc);
+              window_rows_avx512<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, kr + k * kFlagRows, acc);
               done = true;
             } else if (vec) {
-              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, kf ? kr + (size_t)k * 16 : nullptr,
+              window_dss_avx2<KC, CC>(R, Krt, Crt, pt, Q, H, W, window, ic, jc, flat, kf ? kr + k * kFlagRows : nullptr,
                                       acc);
               done = true;
             }
