@@ -369,3 +369,23 @@ def test_ab_kernels_cuts_the_arguments_to_the_signature(cpp_backend):
         return a
 
     assert accepted_args(undocumented, args) == args  # no signature to read: everything
+
+
+def test_vector_op_rates_compiles_and_times_each_operation(tmp_path):
+    from experiments import vector_op_rates
+
+    out = tmp_path / "rates.json"
+    res = vector_op_rates.run(["--iters", "300000", "--out", str(out)])
+    assert json.loads(out.read_text())["ops"] == res["ops"]
+    assert res["clock_ghz"] > 0.1
+    if not res["avx2"]:
+        assert res["ops"] == []
+        return
+    lanes = {8, 16} if res["avx512f"] else {8}
+    assert {(o["op"], o["lanes"]) for o in res["ops"]} == {(op, n) for op in ("div", "sqrt", "rcp", "mul") for n in lanes}
+    for o in res["ops"]:
+        assert 0 < o["throughput_ns"] < 1e3 and 0 < o["latency_ns"] < 1e3
+        # one dependent chain cannot beat eight overlapping ones: a compiler that hoisted or fused
+        # the operations would show up here
+        if o["op"] in ("div", "sqrt"):
+            assert o["latency_ns"] > o["throughput_ns"]
