@@ -7,6 +7,12 @@
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh            # all stages
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table
 #     AB_BASE=/path/to/old/tree OUT=/tmp/gpu bash experiments/gpu_check.sh ab   # A/B of the render step
+#     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/gpu_check.sh env tests bench table rates
+#
+# DEADLINE_S: seconds for all the stages together (a lent machine runs one command for at most
+# 10 minutes). Each stage's own limit is cut to what is left of it, less 15 s for the outputs to
+# be written; a stage with less than 30 s left is skipped (and counts as failed), so the stages
+# that ran still leave their files in $OUT. Put the stages that matter most first.
 #
 # Needs python3 with torch (CUDA build), pytest, numpy, scipy, tqdm; nvcc and ninja. No open3d:
 # set DSS_BENCH_CLOUDS to a folder of clouds sampled on a machine that has it (see
@@ -21,12 +27,23 @@ export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/dss_torch_extensions}
 export MAX_JOBS=${MAX_JOBS:-$(nproc)}
 PY=${PYTHON:-python3}
 STAGES=${*:-env tests ptxas rates bench table}
+DEADLINE_S=${DEADLINE_S:-}
+started=$(date +%s)
 failed=0
 
 stage() {  # stage NAME SECONDS CMD...: run with a time limit, log to $OUT/NAME.txt
   local name=$1 limit=$2
   shift 2
-  echo "=== $name ($(date -u +%H:%M:%S))"
+  if [ -n "$DEADLINE_S" ]; then
+    local left=$((DEADLINE_S - ($(date +%s) - started) - 15))
+    if [ "$left" -lt 30 ]; then
+      echo "!!! $name skipped: ${left} s left of DEADLINE_S=$DEADLINE_S" | tee "$OUT/$name.txt"
+      failed=$((failed + 1))
+      return
+    fi
+    [ "$left" -lt "$limit" ] && limit=$left
+  fi
+  echo "=== $name ($(date -u +%H:%M:%S), at most ${limit} s)"
   timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
   local rc=$?
   if [ $rc -ne 0 ]; then

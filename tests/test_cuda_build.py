@@ -780,3 +780,25 @@ def test_gpu_module_rejects_cpu_tensors(scenes, cuda_kernel):
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+GPU_CHECK = Path(__file__).resolve().parents[1] / "experiments" / "gpu_check.sh"
+
+
+def test_gpu_check_fits_its_stages_into_the_deadline(tmp_path):
+    """DEADLINE_S caps each stage at what is left and skips the stages that no longer fit (a lent
+    GPU machine runs one command for at most 10 minutes, so the stages that ran must still leave
+    their files)."""
+    def check(deadline, *stages):
+        env = {**os.environ, "DEADLINE_S": str(deadline), "OUT": str(tmp_path), "PYTHON": "true"}
+        return subprocess.run(["bash", str(GPU_CHECK), *stages], env=env, capture_output=True, text=True,
+                              cwd=GPU_CHECK.parents[1], timeout=60)
+
+    short = check(20, "rates", "bench")
+    assert short.returncode == 2
+    for name in ("rates", "bench"):
+        assert "skipped" in (tmp_path / f"{name}.txt").read_text()
+    roomy = check(100, "rates")  # `true` stands in for python: the stage passes, capped at 100 - 15 s
+    assert roomy.returncode == 0, roomy.stdout
+    assert "at most 85 s" in roomy.stdout or "at most 84 s" in roomy.stdout
+    assert "skipped" not in (tmp_path / "rates.txt").read_text()
