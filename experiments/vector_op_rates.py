@@ -44,9 +44,7 @@ static double clock_ghz(long n) {
   long x = 0;
   const double t0 = now_ns();
   for (long k = 0; k < n; ++k) { x += k; __asm__ volatile("" : "+r"(x)); }
-  const double t1 = now_ns();
-  if (x == 42) std::puts("");
-  return n / (t1 - t0);
+  return n / (now_ns() - t0);
 }
 
 #define CHAINS8(F) a0 = F(a0); a1 = F(a1); a2 = F(a2); a3 = F(a3); a4 = F(a4); a5 = F(a5); a6 = F(a6); a7 = F(a7); \
@@ -63,17 +61,12 @@ static double clock_ghz(long n) {
       else { for (long k = 0; k < n; ++k) { CHAINS8(F) } }                                           \
       const double t1 = now_ns();                                                                    \
       ns[lat] = (t1 - t0) / (lat ? n : 8.0 * n);                                                     \
-      alignas(64) float out[16];                                                                     \
-      T s = a0; (void)a1; (void)a2; (void)a3; (void)a4; (void)a5; (void)a6; (void)a7;                \
-      std::memcpy(out, &s, sizeof(T));                                                               \
-      if (out[0] == 12345.f) std::puts("");                                                          \
     }                                                                                                \
     std::printf("{\"op\": \"%s\", \"lanes\": %d, \"throughput_ns\": %.4f, \"latency_ns\": %.4f, "    \
                 "\"throughput_cycles\": %.2f, \"latency_cycles\": %.2f}\n",                         \
                 #NAME, WIDTH / 32, ns[0], ns[1], ns[0] * ghz, ns[1] * ghz);                         \
   }
 
-#include <cstring>
 #define A2 __attribute__((target("avx2")))
 #define A512 __attribute__((target("avx512f")))
 #define B256 _mm256_set1_ps(1.0000001f)
