@@ -122,6 +122,35 @@ def build(name: str, source_text: str, workdir: Path, headers: dict[str, str] | 
                 extra_ldflags=_OPENMP_FLAGS, build_directory=str(build_dir), verbose=False)
 
 
+def add_step_args(ap: argparse.ArgumentParser, threads: int, reps: int) -> None:
+    """The captured step's options (kind, points, views, image size) and the timing's (threads,
+    reps, skip), shared by the commands that time kernel builds on it."""
+    ap.add_argument("--kind", choices=("position", "normal"), default="position")
+    ap.add_argument("--points", type=int, default=20000)
+    ap.add_argument("--views", type=int, default=12)
+    ap.add_argument("--image-size", type=int, default=256)
+    ap.add_argument("--threads", type=int, default=threads)
+    ap.add_argument("--reps", type=int, default=reps)
+    ap.add_argument("--skip", type=int, default=2, help="warm-up calls of each build left out of the medians")
+
+
+def time_interleaved(fns: dict, fn_args: dict, reps: int, evict_mb: int) -> dict[str, list[float]]:
+    """Call every ``fns[k](*fn_args[k])`` in turn, ``reps`` rounds; the wall time of each call (ms).
+
+    Before each call ``evict_mb`` MB are written, so that the call finds its data out of the
+    caches, as in a step where other kernels run between two calls of one."""
+    junk = torch.zeros(max(evict_mb, 0) << 18)  # float32: 2^18 per MB
+    times: dict = {k: [] for k in fns}
+    for _ in range(reps):
+        for k, fn in fns.items():
+            junk.add_(1.0)
+            t0 = time.perf_counter()
+            out = fn(*fn_args[k])
+            times[k].append(1e3 * (time.perf_counter() - t0))
+            del out
+    return times
+
+
 def git_headers(rev: str) -> dict[str, str]:
     """The revision's ``dss/csrc/*.h`` (file name -> text)."""
     folder = str(Path(SOURCE).parent)
@@ -149,13 +178,7 @@ def run(argv=None) -> dict:
     ap.add_argument("--level", type=int, choices=(0, 1, 2), default=None,
                     help="with a git revision as --base: run both builds at this vector level "
                          "(set_vector_level; 1: the AVX2 paths, as on a CPU without AVX-512)")
-    ap.add_argument("--kind", choices=("position", "normal"), default="position")
-    ap.add_argument("--points", type=int, default=20000)
-    ap.add_argument("--views", type=int, default=12)
-    ap.add_argument("--image-size", type=int, default=256)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--reps", type=int, default=12)
-    ap.add_argument("--skip", type=int, default=2, help="warm-up calls of each build left out of the medians")
+    add_step_args(ap, threads=1, reps=12)
     ap.add_argument("--window", type=int, default=None,
                     help="visibility_backward only: call it with this window half size (px) instead of the "
                          "captured step's")
@@ -179,7 +202,6 @@ def run(argv=None) -> dict:
     work_text = (REPO / SOURCE).read_text()
     own = {"scalar": 0, "avx2": 1}.get(args.base)  # the working tree at a lower vector level
     sources = {"base": work_text if own is not None else git_source(args.base), "work": work_text}
-    times: dict = {k: [] for k in sources}
     with tempfile.TemporaryDirectory() as tmp:
         headers = {"base": None if own is not None else git_headers(args.base), "work": None}
         mods = {k: build(f"dss_ab_{k}", text, Path(tmp), headers[k]) for k, text in sources.items()}
@@ -190,16 +212,9 @@ def run(argv=None) -> dict:
                 if not hasattr(mod, "set_vector_level"):
                     raise SystemExit(f"--level: the build of {args.base} has no set_vector_level")
                 mod.set_vector_level(args.level)
-        junk = torch.zeros(max(args.evict_mb, 0) << 18)  # float32: 2^18 per MB
         fns = {k: getattr(mod, args.kernel) for k, mod in mods.items()}
         mod_args = {k: accepted_args(fn, call_args) for k, fn in fns.items()}
-        for _ in range(args.reps):
-            for k, fn in fns.items():
-                junk.add_(1.0)
-                t0 = time.perf_counter()
-                out = fn(*mod_args[k])
-                times[k].append(1e3 * (time.perf_counter() - t0))
-                del out
+        times = time_interleaved(fns, mod_args, args.reps, args.evict_mb)
     med = {k: statistics.median(v[args.skip:]) for k, v in times.items()}
     result = {"kernel": args.kernel, "base": args.base,
               "base_commit": None if own is not None else git_short(args.base),  # "HEAD" resolved

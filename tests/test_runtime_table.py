@@ -389,3 +389,71 @@ def test_vector_op_rates_compiles_and_times_each_operation(tmp_path):
         # the operations would show up here
         if o["op"] in ("div", "sqrt"):
             assert o["latency_ns"] > o["throughput_ns"]
+
+
+def test_kernel_variants_apply_to_the_shipped_source():
+    """Every named variant of experiments.kernel_variants (and the branch log) still applies to
+    dss_cpu.cpp: a kernel change that moves an anchor fails here, not in a later timing run."""
+    from experiments import kernel_variants as kv
+
+    text = (kv.REPO / kv.SOURCE).read_text()
+    assert {"window_twice", "flagged_rows_as_nok", "no_new_front", "screen_band_order"} <= set(kv.VARIANTS)
+    for v in [*kv.VARIANTS.values(), kv.BRANCH_LOG]:
+        patched = kv.apply_variant(text, v)
+        assert patched != text, v.name
+        for _, new in v.subs:
+            assert new in patched, v.name
+    # the branch log names every site it logs, and logs each site at least once
+    logged = kv.apply_variant(text, kv.BRANCH_LOG)
+    for site in range(len(kv.BRANCH_SITES)):
+        assert f"BL({site}, " in logged, site
+
+
+def test_kernel_variants_refuse_a_stale_anchor():
+    from experiments import kernel_variants as kv
+
+    stale = kv.Variant("stale", "", True, (("no such text", "x"),))
+    with pytest.raises(kv.VariantError, match="'stale' does not apply to kernel.cpp: not found"):
+        kv.apply_variant("int main() {}", stale, "kernel.cpp")
+    twice = kv.Variant("twice", "", True, (("a;", "b;"),))
+    with pytest.raises(kv.VariantError, match="found 2 times"):
+        kv.apply_variant("a; a;", twice)
+    assert kv.apply_variant("a; c;", twice) == "b; c;"
+    with pytest.raises(SystemExit, match="unknown variant"):
+        kv.run(["--variants", "no_such_variant"])
+
+
+def test_kernel_variants_gshare_replay_learns_a_pattern(tmp_path):
+    """The branch-log replay: an alternating branch defeats a predictor without history and is
+    learnt with it; an always-taken branch costs at most a warm-up miss."""
+    from experiments import kernel_variants as kv
+
+    n = 4000
+    codes = []
+    for i in range(n):
+        codes.append(0 << 1 | (i & 1))  # site 0: taken, not taken, ...
+        codes.append(1 << 1 | 1)  # site 1: always taken
+    rep = kv.branch_report(torch.tensor(codes, dtype=torch.uint8), [0, 4], tmp_path)
+    s0, s1 = rep["sites"][0], rep["sites"][1]
+    assert rep["outcomes"] == 2 * n and s0["outcomes"] == n and s0["taken"] == n // 2 and s1["taken"] == n
+    assert s0["site"] == kv.BRANCH_SITES[0]
+    assert s0["gshare_misses"]["0"] >= n // 3  # a 2-bit counter cannot follow an alternation
+    assert s0["gshare_misses"]["4"] <= 10 and s1["gshare_misses"]["0"] <= 2
+    assert rep["best_history"] == 4 and rep["total_misses"]["4"] < rep["total_misses"]["0"]
+    assert all(s["outcomes"] == 0 for s in rep["sites"][2:])
+
+
+@pytest.mark.slow
+def test_kernel_variants_times_and_checks_bits(tmp_path, cpp_backend):
+    """Two variant builds and the shipped one on a small captured step (~2 min): an exact variant
+    keeps the output bit for bit; the result names each variant's speed-up."""
+    from experiments import kernel_variants as kv
+
+    out = tmp_path / "var.json"
+    r = kv.run(["--variants", "clamp_branchless", "window_twice", "--points", "1500", "--views", "2",
+                "--image-size", "64", "--reps", "3", "--skip", "1", "--evict-mb", "2", "--threads", "1",
+                "--out", str(out)])
+    assert set(r["variants"]) == {"clamp_branchless", "window_twice"}
+    for row in r["variants"].values():
+        assert row["exact"] and row["same_bits"] and row["error"] is None and row["speedup"] > 0
+    assert json.loads(out.read_text())["shipped_median_ms"] == r["shipped_median_ms"]
