@@ -90,6 +90,7 @@ _WINDOW_TWICE = (_AVX512_CALL, _AVX512_CALL + """\
                 asm volatile("" ::"m"(again[0]), "m"(again[1]), "m"(again[2]));
               }
 """)
+_ROW_LOOP = "  for (int i = std::max(ic - (int)window, 0); i <= std::min(ic + (int)window, (int)H - 1); ++i) {\n    a.p0"
 _WINDOW_DEF = "template <int64_t KC, int64_t CC>\nDSS_AVX512 void window_rows_avx512("
 _TOUCH_DEF = (_WINDOW_DEF, """\
 // (kernel_variants) every float plane of the window's rows read once, 8 independent maxima
@@ -173,6 +174,9 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("no_windows", "timing only: no window evaluated (the record build, the flags and the point loop "
             "alone): the shipped time less this is the window walk's", False,
             ((_AVX512_CALL, "              (void)acc;  // (kernel_variants: no window)\n"),)),
+    Variant("half_the_rows", "timing only: every other window row evaluated (9 rows -> 5): what a walk that packed "
+            "two rows (or two points' rows) into one 16-lane vector could at most gain, its packing free", False,
+            ((_ROW_LOOP, _ROW_LOOP.replace("; ++i) {", "; i += 2) {")),)),
     Variant("flagged_rows_as_nok", "timing only: the rows where the point is cached also take eval_nok (case (c) "
             "dropped): the most any cheaper case (c) could gain", False, (_FLAGGED_AS_NOK,)),
     Variant("no_new_front", "timing only: eval_nok without its new-front section (entries beyond zp + T not "
