@@ -12,22 +12,26 @@ something else). ``run`` captures the inputs of one optimisation step as ``ab_ke
 20K-point kangaroo cloud, 12 views at 256x256), builds the unmodified source and every chosen
 variant in this process, and calls them in turn ``--reps`` times each, caches evicted before each
 call. It prints and writes each variant's median, its speed-up against the shipped source, and
-whether its output equals the shipped output bit for bit. A variant marked ``exact`` must keep the
+whether its output equals the shipped output bit for bit (the bytes compared, so -0 against +0
+counts as a change). A variant marked ``exact`` must keep the
 output (a change is reported as an error); the others are timing-only probes (work removed,
 results wrong) that bound what a real change could gain.
 
 ``--branch-log`` answers a different question: how predictable are the kernel's data-dependent
-branches? It builds the shipped source with every such branch of the AVX-512 window walk logged
-(a byte per outcome, one thread), runs one call, and replays the outcome stream through a gshare
-predictor (2-bit counters, 2^22 entries, indexed by a hash of the branch site and the last h
-outcomes) for several history lengths h; the per-site mispredictions of the best h are a rough
-stand-in for the counters this VM does not expose (a real core's predictor is better than gshare,
-so these are upper bounds).
+branches? It builds the shipped source with the AVX-512 window walk's data-dependent branches
+logged (``BRANCH_SITES``: the point loop's invalid-point test, the row's flag and the branches of
+``eval`` and ``eval_nok``; not the loops' exits nor the border rows' masked loads), a byte per
+outcome, one thread; runs one call; and replays the outcome stream through a gshare predictor
+(2-bit counters, 2^22 entries, indexed by a hash of the branch site and the last h logged
+outcomes) for several history lengths h. The per-site mispredictions of the best h are an
+estimate standing in for the counters this VM does not expose, not a bound: a core's predictor
+is better than gshare, but its tables are smaller and its history holds the other branches too.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import statistics
 import subprocess
@@ -115,7 +119,7 @@ _POINT_LOOP = """\
 """
 _PREFETCH = (_POINT_LOOP, """\
           const float* s = P + (v * N + k) * kFields;
-          if (k + 2 < k_end) {  // (kernel_variants) the window of the point two on, 9 float planes + idx 0
+          if (k + 2 < k_end) {  // (kernel_variants) the window of the point two on, float planes 0-8 + idx 0
             const float* s2 = P + (v * N + k + 2) * kFields;
             if (s2[9] > 0.f) {
               const int i2 = (int)std::floor(s2[1]), j2 = std::max((int)std::floor(s2[0]) - (int)window, 0);
@@ -162,7 +166,7 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("clamp_branchless", "plane_depth's kMaxSlope clamp computed in every row, no branch", True, (_CLAMP,)),
     Variant("both_branchless", "nok_alive_branchless and clamp_branchless together", True, (_NOK_ALIVE, _CLAMP)),
     Variant("prefetch_next_window", "before each point, software prefetches of the window rows of the point two on "
-            "(the 9 float planes eval_nok reads and index plane 0)", True, (_PREFETCH,)),
+            "(float planes 0-8, with 3 channels the 9 that eval_nok reads, and index plane 0)", True, (_PREFETCH,)),
     Variant("screen_band_order", "each view's points walked in bands of 8 image rows along x (serpentine) "
             "instead of the spatial sort's order", True, (_BAND_ORDER, _BAND_LOOP)),
     Variant("window_twice", "every window evaluated a second time right after the first, into a discarded sum: "
@@ -174,11 +178,17 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("no_windows", "timing only: no window evaluated (the record build, the flags and the point loop "
             "alone): the shipped time less this is the window walk's", False,
             ((_AVX512_CALL, "              (void)acc;  // (kernel_variants: no window)\n"),)),
-    Variant("half_the_rows", "timing only: every other window row evaluated (9 rows -> 5): what a walk that packed "
-            "two rows (or two points' rows) into one 16-lane vector could at most gain, its packing free", False,
+    Variant("half_the_rows", "timing only: every other window row evaluated (9 rows -> 5 vectors): more than what "
+            "packing a 9 x 9 window's 81 pixels into fewer 16-lane vectors (at best 6) could gain, the packing free",
+            False,
             ((_ROW_LOOP, _ROW_LOOP.replace("; ++i) {", "; i += 2) {")),)),
     Variant("flagged_rows_as_nok", "timing only: the rows where the point is cached also take eval_nok (case (c) "
             "dropped): the most any cheaper case (c) could gain", False, (_FLAGGED_AS_NOK,)),
+    Variant("no_flags", "timing only: the record build marks no rows (every row takes eval_nok, as in "
+            "flagged_rows_as_nok): against that variant, what the marking costs", False,
+            (("          if (kf) {\n            // mark row i", "          if (false) {\n            // mark row i"),)),
+    Variant("no_c_no_new_front", "timing only: flagged_rows_as_nok and no_new_front together (every row takes "
+            "eval_nok, without its new-front section)", False, (_FLAGGED_AS_NOK, _NO_NEW_FRONT)),
     Variant("no_new_front", "timing only: eval_nok without its new-front section (entries beyond zp + T not "
             "dropped): the most any cheaper new-front sum could gain", False, (_NO_NEW_FRONT,)),
 )}
@@ -247,6 +257,10 @@ _GSHARE_CPP = r"""
 // site and the last h outcomes; prints, per history length, the mispredictions of every site.
 int main(int argc, char** argv) {
   FILE* f = std::fopen(argv[1], "rb");
+  if (!f) {
+    std::perror(argv[1]);
+    return 2;
+  }
   std::vector<uint8_t> b;
   uint8_t buf[1 << 16];
   size_t n;
@@ -298,7 +312,7 @@ def branch_report(log: torch.Tensor, histories: list[int], workdir: Path) -> dic
     codes = log.to(torch.int64)
     sites, taken = codes >> 1, codes & 1
     n_sites = len(BRANCH_SITES)
-    if int(sites.max()) >= n_sites if sites.numel() else False:
+    if sites.numel() and int(sites.max()) >= n_sites:
         raise ValueError(f"branch log holds site {int(sites.max())}: only {n_sites} are named")
     count = torch.bincount(sites, minlength=n_sites).tolist()
     tk = torch.bincount(sites, weights=taken.to(torch.float64), minlength=n_sites).tolist()
@@ -327,9 +341,17 @@ def run(argv=None) -> dict:
         for v in VARIANTS.values():
             print(f"{v.name:22s} {'exact ' if v.exact else 'timing'}  {v.summary}")
         return {"variants": {v.name: {"exact": v.exact, "summary": v.summary} for v in VARIANTS.values()}}
+    names = args.variants or list(VARIANTS)
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown variant(s) {unknown}; --list names them")
     text = (REPO / SOURCE).read_text()
+    # the commit, and whether the working tree's kernel source differs from it (the runs time the
+    # working tree's); the source's hash names it either way
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", str(Path(SOURCE).parent)], cwd=REPO).returncode != 0
     common = {"kernel": "visibility_backward", "kind": args.kind, "points": args.points, "views": args.views,
-              "image_size": args.image_size, "source_commit": git_short("HEAD"),
+              "image_size": args.image_size, "source_commit": git_short("HEAD"), "source_modified": dirty,
+              "source_sha256": hashlib.sha256(text.encode()).hexdigest()[:16],
               "command": command_line("python -m experiments.kernel_variants", argv)}
     if args.branch_log:
         patched = apply_variant(text, BRANCH_LOG)  # before the capture: a stale anchor fails fast
@@ -348,10 +370,6 @@ def run(argv=None) -> dict:
             print(f"  {s['site']:34s} {s['outcomes']:9d} outcomes, {s['taken']:9d} taken, "
                   f"{s['gshare_misses'][best]:8d} mispredicted")
         return write_result({**common, "mode": "branch_log", "threads": 1, **report}, args.out)
-    names = args.variants or list(VARIANTS)
-    unknown = [n for n in names if n not in VARIANTS]
-    if unknown:
-        raise SystemExit(f"unknown variant(s) {unknown}; --list names them")
     if args.reps <= args.skip:
         raise SystemExit("--reps must exceed --skip")
     sources = {"shipped": text, **{n: apply_variant(text, VARIANTS[n]) for n in names}}
@@ -365,7 +383,7 @@ def run(argv=None) -> dict:
         ref = fns["shipped"](*fargs["shipped"])
         for k in names:
             out = fns[k](*fargs[k])
-            same[k] = all(torch.equal(a, b) for a, b in zip(_tensors(ref), _tensors(out)))
+            same[k] = _same_bytes(ref, out)
         times = time_interleaved(fns, fargs, args.reps, args.evict_mb)
     med = {k: statistics.median(v[args.skip:]) for k, v in times.items()}
     rows = {}
@@ -390,6 +408,15 @@ def run(argv=None) -> dict:
 
 def _tensors(out) -> list:
     return [out] if isinstance(out, torch.Tensor) else [t for t in out if isinstance(t, torch.Tensor)]
+
+
+def _same_bytes(a, b) -> bool:
+    """The two kernel outputs hold the same tensors byte for byte (-0 and +0 differ, NaN equals itself)."""
+    ta, tb = _tensors(a), _tensors(b)
+    return len(ta) == len(tb) and all(
+        x.shape == y.shape and x.dtype == y.dtype
+        and x.contiguous().view(torch.uint8).numpy().tobytes() == y.contiguous().view(torch.uint8).numpy().tobytes()
+        for x, y in zip(ta, tb))
 
 
 main = main_for(run)

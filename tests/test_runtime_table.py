@@ -399,14 +399,12 @@ def test_kernel_variants_apply_to_the_shipped_source():
     text = (kv.REPO / kv.SOURCE).read_text()
     assert {"window_twice", "flagged_rows_as_nok", "no_new_front", "screen_band_order"} <= set(kv.VARIANTS)
     for v in [*kv.VARIANTS.values(), kv.BRANCH_LOG]:
-        patched = kv.apply_variant(text, v)
-        assert patched != text, v.name
-        for _, new in v.subs:
-            assert new in patched, v.name
+        assert kv.apply_variant(text, v) != text, v.name
     # the branch log names every site it logs, and logs each site at least once
     logged = kv.apply_variant(text, kv.BRANCH_LOG)
     for site in range(len(kv.BRANCH_SITES)):
         assert f"BL({site}, " in logged, site
+    assert f"BL({len(kv.BRANCH_SITES)}, " not in logged
 
 
 def test_kernel_variants_refuse_a_stale_anchor():
@@ -455,5 +453,7 @@ def test_kernel_variants_times_and_checks_bits(tmp_path, cpp_backend):
                 "--out", str(out)])
     assert set(r["variants"]) == {"clamp_branchless", "window_twice"}
     for row in r["variants"].values():
-        assert row["exact"] and row["same_bits"] and row["error"] is None and row["speedup"] > 0
+        assert row["exact"] and row["same_bits"] and row["error"] is None
+    # the source timed is named (tests never check wall time)
+    assert isinstance(r["source_modified"], bool) and len(r["source_sha256"]) == 16
     assert json.loads(out.read_text())["shipped_median_ms"] == r["shipped_median_ms"]
