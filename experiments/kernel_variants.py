@@ -160,6 +160,74 @@ _BAND_LOOP = ("        for (int64_t k = k_begin; k < k_end; ++k) {\n          co
               "        for (int64_t kk = k_begin; kk < k_end; ++kk) {\n          const int64_t k = order[kk];\n"
               "          const float* s = P + (v * N + k) * kFields;\n")
 
+_KROWS = """\
+  static thread_local std::vector<uint8_t> krows;
+  if (kf) krows.resize((size_t)(N * kFlagRows));
+  uint8_t* const kr = krows.data();  // (the vector is this thread's: the tasks use the pointer)
+"""
+_KR_MEMSET = "      if (kf) std::memset(kr, 0, (size_t)(N * kFlagRows));\n"
+_MARK_LOOP = """\
+            for (int e = 0; e < K && pi[e] >= 0; ++e) {
+              const float* sk = P + (v * N + pi[e]) * kFields;
+              const int64_t r = i - ((int64_t)std::floor(sk[1]) - window), c = j - ((int64_t)std::floor(sk[0]) - window);
+"""
+_MARK_PREFETCH = """\
+#ifdef DSS_HAVE_AVX2
+              if (kf) __builtin_prefetch(P + (v * N + qi[e]) * kFields);
+#endif
+"""
+_DENSE_ORIGINS = (
+    (_KROWS, _KROWS + """\
+  static thread_local std::vector<int32_t> korigin;  // (kernel_variants) per point: window row, column
+  if (kf) korigin.resize((size_t)(N * 2));
+  int32_t* const ko = korigin.data();
+"""),
+    (_KR_MEMSET, """\
+      if (kf) {
+        std::memset(kr, 0, (size_t)(N * kFlagRows));
+        dynamic_for((N + 4095) / 4096, 1, [&](int64_t t) {
+          for (int64_t k = t * 4096; k < std::min(N, (t + 1) * 4096); ++k) {
+            const float* s = P + (v * N + k) * kFields;
+            const bool ok = s[9] > 0.f;  // an invalid splat is in no cache: its rows stay unmarked
+            ko[2 * k] = ok ? (int32_t)std::floor(s[1]) - (int32_t)window : std::numeric_limits<int32_t>::min() / 2;
+            ko[2 * k + 1] = ok ? (int32_t)std::floor(s[0]) - (int32_t)window : std::numeric_limits<int32_t>::min() / 2;
+          }
+        });
+      }
+"""),
+    (_MARK_LOOP, """\
+            for (int e = 0; e < K && pi[e] >= 0; ++e) {
+              const int32_t* o = ko + 2 * (int64_t)pi[e];
+              const int64_t r = i - (int64_t)o[0], c = j - (int64_t)o[1];
+"""),
+    (_MARK_PREFETCH, ""),
+)
+_PER_THREAD_FLAGS = (
+    (_KROWS, """\
+  static thread_local std::vector<uint8_t> krows;
+  const int64_t nflag = std::max<int>(1, at::get_num_threads());  // (kernel_variants) an array per thread
+  if (kf) krows.resize((size_t)(nflag * N * kFlagRows));
+  uint8_t* const kr = krows.data();
+"""),
+    (_KR_MEMSET, "      if (kf) std::memset(kr, 0, (size_t)(nflag * N * kFlagRows));\n"),
+    (_MARK_LOOP, """\
+            uint8_t* const krt = kr + std::min<int64_t>(at::get_thread_num(), nflag - 1) * N * kFlagRows;
+""" + _MARK_LOOP),
+    ("                __atomic_store_n(&kr[pi[e] * kFlagRows + r], (uint8_t)1, __ATOMIC_RELAXED);\n",
+     "                __atomic_store_n(&krt[pi[e] * kFlagRows + r], (uint8_t)1, __ATOMIC_RELAXED);\n"),
+    ("          const int ic = (int)std::floor(pt.v), jc = (int)std::floor(pt.u);\n", """\
+          const int ic = (int)std::floor(pt.v), jc = (int)std::floor(pt.u);
+          alignas(16) uint8_t kflags[kFlagRows];  // the threads' flags of this point, ORed
+          if (kf) {
+            std::memcpy(kflags, kr + k * kFlagRows, kFlagRows);
+            for (int64_t t = 1; t < nflag; ++t)
+              for (int r = 0; r < kFlagRows; ++r) kflags[r] |= kr[(t * N + k) * kFlagRows + r];
+          }
+"""),
+    (_AVX512_CALL, _AVX512_CALL.replace("kr + k * kFlagRows", "kflags")),
+    ("flat, kf ? kr + k * kFlagRows : nullptr,", "flat, kf ? kflags : nullptr,"),
+)
+
 VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("nok_alive_branchless", "eval_nok's new-front section run in every row (its mask unchanged), "
             "no branch on whether some lane needs it", True, (_NOK_ALIVE,)),
@@ -175,6 +243,11 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("touch_then_eval", "every float plane of the window's rows read once just before the window is "
             "evaluated: the extra time is the cold read, what the evaluation then saves is its memory stall",
             True, (_TOUCH_DEF, _TOUCH_CALL)),
+    Variant("dense_origins", "the row marking reads each cached point's window origin from a dense per-view "
+            "array (8 bytes, computed once per view) instead of its 40-byte splat row and two floors", True,
+            _DENSE_ORIGINS),
+    Variant("per_thread_flags", "the row marking writes one flag array per thread (ORed per point by the point "
+            "loop), so that no flag line is written from both cores", True, _PER_THREAD_FLAGS),
     Variant("no_windows", "timing only: no window evaluated (the record build, the flags and the point loop "
             "alone): the shipped time less this is the window walk's", False,
             ((_AVX512_CALL, "              (void)acc;  // (kernel_variants: no window)\n"),)),
