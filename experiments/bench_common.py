@@ -5,6 +5,7 @@ written where ``--out`` says, and their ``main``."""
 from __future__ import annotations
 
 import contextlib
+import os
 import subprocess
 import tempfile
 from pathlib import Path
@@ -28,6 +29,21 @@ def base_worktree(base: str, prefix: str):
             yield {"base": (base_repo, tmp / "ext_base"), "work": (REPO, tmp / "ext_work")}
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(base_repo)], cwd=REPO)
+
+
+def run_cpp_program(source: str, args: list[str], what: str) -> str:
+    """Compile a one-file C++ program with ``$CXX`` (default ``g++``) at ``-O2`` in a temporary
+    folder, run it with ``args`` (``{dir}`` in one is that folder) and return its standard output;
+    exits naming ``what`` when it does not compile."""
+    cxx = os.environ.get("CXX", "g++")
+    with tempfile.TemporaryDirectory(prefix="dss_cpp_") as tmp:
+        src, exe = Path(tmp) / "prog.cpp", Path(tmp) / "prog"
+        src.write_text(source)
+        build = subprocess.run([cxx, "-O2", "-o", str(exe), str(src)], capture_output=True, text=True)
+        if build.returncode != 0:
+            raise SystemExit(f"{cxx} could not compile {what}:\n{build.stderr[-2000:]}")
+        return subprocess.run([str(exe), *(a.replace("{dir}", tmp) for a in args)], capture_output=True, text=True,
+                              check=True).stdout
 
 
 def git_short(rev: str) -> str:

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import os
 import statistics
 import subprocess
 import tempfile
@@ -49,7 +48,7 @@ from experiments.ab_kernels import (
     capture_inputs,
     time_interleaved,
 )
-from experiments.bench_common import REPO, git_short, main_for, write_result
+from experiments.bench_common import REPO, git_short, main_for, run_cpp_program, write_result
 from experiments.figures import command_line
 
 
@@ -285,6 +284,8 @@ static inline bool BL(int site, bool c) {
   return c;
 }
 """
+_M0 = ("    if (m == 0) return;\n    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), "
+       "r2 = a.ld(R->plane(Rec::kGn));\n    const __m512 d0m = _mm512_add_ps(d0, vmerge);\n")
 _LOG_SUBS: tuple[tuple[str, str], ...] = (
     ("struct Frag {\n", _LOG_HEADER + "struct Frag {\n"),
     (_POINT_LOOP, _POINT_LOOP.replace("if (!(s[9] > 0.f))", "if (BL(0, !(s[9] > 0.f)))")),
@@ -301,14 +302,9 @@ _LOG_SUBS: tuple[tuple[str, str], ...] = (
     ("    if (!o.any) continue;\n    // eval_scalar's order per pixel",
      "    if (BL(10, !o.any)) continue;\n    // eval_scalar's order per pixel"),
     ("    if (o.any_c) {\n      add(sx, o.x2);", "    if (BL(11, o.any_c)) {\n      add(sx, o.x2);"),
-    ("    if (m == 0) return;\n    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), "
-     "r2 = a.ld(R->plane(Rec::kGn));\n    const __m512 d0m = _mm512_add_ps(d0, vmerge);\n    __m512i ie[8];",
-     "    if (BL(12, m == 0)) return;\n    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), "
-     "r2 = a.ld(R->plane(Rec::kGn));\n    const __m512 d0m = _mm512_add_ps(d0, vmerge);\n    __m512i ie[8];"),
-    ("    if (m == 0) return;\n    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), "
-     "r2 = a.ld(R->plane(Rec::kGn));\n    const __m512 d0m = _mm512_add_ps(d0, vmerge);\n    const __mmask16 empty",
-     "    if (BL(12, m == 0)) return;\n    const __m512 d0 = a.ld(R->plane(Rec::kD0)), r1 = a.ld(R->plane(Rec::kDen)), "
-     "r2 = a.ld(R->plane(Rec::kGn));\n    const __m512 d0m = _mm512_add_ps(d0, vmerge);\n    const __mmask16 empty"),
+    # the early return of eval (its next line declares ie) and of eval_nok (empty)
+    *((_M0 + tail, _M0.replace("if (m == 0)", "if (BL(12, m == 0))") + tail)
+      for tail in ("    __m512i ie[8];", "    const __mmask16 empty")),
     ('  m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");\n',
      '  m.def("visibility_backward", &visibility_backward, "DSS visibility gradient (CPU)");\n'
      '  m.def("branch_log", [] {\n'
@@ -366,15 +362,9 @@ int main(int argc, char** argv) {
 
 def gshare_misses(log: bytes, histories: list[int], workdir: Path) -> dict[int, list[int]]:
     """Mispredictions per branch site (index = site) of a gshare predictor replaying ``log``."""
-    cxx = os.environ.get("CXX", "g++")
-    src, exe, data = workdir / "gshare.cpp", workdir / "gshare", workdir / "log.bin"
-    src.write_text(_GSHARE_CPP)
+    data = workdir / "log.bin"
     data.write_bytes(log)
-    res = subprocess.run([cxx, "-O2", "-o", str(exe), str(src)], capture_output=True, text=True)
-    if res.returncode != 0:
-        raise SystemExit(f"{cxx} could not build the gshare replay: {res.stderr.strip()[:500]}")
-    out = subprocess.run([str(exe), str(data), *map(str, histories)], capture_output=True, text=True,
-                         check=True).stdout
+    out = run_cpp_program(_GSHARE_CPP, [str(data), *map(str, histories)], "the gshare replay")
     rows = [list(map(int, line.split())) for line in out.splitlines() if line.strip()]
     return {r[0]: r[1:] for r in rows}
 

@@ -18,13 +18,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
-import tempfile
-from pathlib import Path
 
-from experiments.bench_common import main_for, write_result
+from experiments.bench_common import main_for, run_cpp_program, write_result
 from experiments.figures import command_line
 
 # One function per (operation, width, chains): the operation applied to each chain in turn,
@@ -104,14 +100,7 @@ int main(int argc, char** argv) {
 
 def measure(iters: int) -> dict:
     """Compile and run the program; {"clock_ghz", "avx2", "avx512f", "ops": [...]}."""
-    cxx = os.environ.get("CXX", "g++")
-    with tempfile.TemporaryDirectory(prefix="dss_op_rates_") as tmp:
-        src, exe = Path(tmp) / "op_rates.cpp", Path(tmp) / "op_rates"
-        src.write_text(SOURCE)
-        build = subprocess.run([cxx, "-O2", "-o", str(exe), str(src)], capture_output=True, text=True)
-        if build.returncode != 0:
-            raise SystemExit(f"{cxx} could not compile the op-rate program:\n{build.stderr[-2000:]}")
-        out = subprocess.run([str(exe), str(iters)], capture_output=True, text=True, check=True).stdout
+    out = run_cpp_program(SOURCE, [str(iters)], "the op-rate program")
     lines = [json.loads(line) for line in out.splitlines() if line.strip()]
     head, ops = lines[0], lines[1:]
     return {**head, "avx2": bool(head["avx2"]), "avx512f": bool(head["avx512f"]), "ops": ops}

@@ -778,10 +778,6 @@ def test_gpu_module_rejects_cpu_tensors(scenes, cuda_kernel):
         cuda_kernel.rasterize_forward(*forward_args(s))
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(pytest.main([__file__, "-q"]))
-
-
 GPU_CHECK = Path(__file__).resolve().parents[1] / "experiments" / "gpu_check.sh"
 
 
@@ -802,3 +798,7 @@ def test_gpu_check_fits_its_stages_into_the_deadline(tmp_path):
     assert roomy.returncode == 0, roomy.stdout
     assert "at most 85 s" in roomy.stdout or "at most 84 s" in roomy.stdout
     assert "skipped" not in (tmp_path / "rates.txt").read_text()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(pytest.main([__file__, "-q"]))
