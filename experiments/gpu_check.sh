@@ -5,7 +5,8 @@
 # column (experiments/runtime_table.py). Run from the repository root on the GPU machine:
 #
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh            # all stages
-#     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table
+#     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table,
+#                                                           # memcheck, racecheck (compute-sanitizer)
 #     AB_BASE=/path/to/old/tree OUT=/tmp/gpu bash experiments/gpu_check.sh ab   # A/B of the render step
 #     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/gpu_check.sh env tests bench table rates
 #
@@ -18,7 +19,9 @@
 # set DSS_BENCH_CLOUDS to a folder of clouds sampled on a machine that has it (see
 # experiments/bench_render.py benchmark_cloud) to time the same kangaroo clouds as the CPU tables.
 # Each stage's output goes to $OUT/<stage>.txt; the JSONs to $OUT. A failing stage does not stop
-# the later ones; the exit status is the number of failed stages.
+# the later ones; the exit status is the number of failed stages. A full run writes 12 files; where
+# a tool returns only a few files from the GPU machine, write to a scratch OUT and pack it, e.g.
+#     OUT=/tmp/g bash experiments/gpu_check.sh ...; tar -C /tmp/g -cf "$RETURNED/gpu.tar" .
 set -uo pipefail
 OUT=${OUT:-results/gpu}
 mkdir -p "$OUT"
@@ -59,7 +62,15 @@ for s in $STAGES; do
     stage env 60 bash -c "nvidia-smi; $PY -V; nvcc --version; $PY -c 'import torch; print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))'"
     ;;
   tests)  # builds both modules (CPU kernel for the comparisons), then every gpu-marked test
-    stage tests 420 "$PY" -m pytest -p no:cacheprovider -q -m gpu -ra tests/test_cuda_build.py tests/test_render_cuda.py tests/test_render_backward.py
+    stage tests 420 "$PY" -m pytest -p no:cacheprovider -q -m gpu -ra tests/test_cuda_build.py tests/test_render_cuda.py tests/test_render_backward.py tests/test_knn.py
+    ;;
+  memcheck)  # the kernel tests under compute-sanitizer (out-of-bounds and misaligned accesses); run after tests (built)
+    stage memcheck 240 compute-sanitizer --tool memcheck --error-exitcode 9 "$PY" -m pytest -p no:cacheprovider -q -m gpu \
+      tests/test_cuda_build.py -k "not denoising_sized"
+    ;;
+  racecheck)  # shared-memory hazards of the tiled kernels, on the scenes with multi-batch bins and depth ties
+    stage racecheck 240 compute-sanitizer --tool racecheck --error-exitcode 9 "$PY" -m pytest -p no:cacheprovider -q -m gpu \
+      tests/test_cuda_build.py -k "deep_bins or ties"
     ;;
   ptxas)  # registers, shared memory, spills of every kernel for this GPU
     stage ptxas 180 nvcc -c -std=c++17 -O3 --fmad=false -arch=native -Xptxas -v -I dss/csrc \
@@ -78,7 +89,7 @@ for s in $STAGES; do
     stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda"
     ;;
   *)
-    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, ab)"
+    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck, ab)"
     failed=$((failed + 1))
     ;;
   esac

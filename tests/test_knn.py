@@ -127,6 +127,7 @@ def test_knn_bad_input():
         knn(torch.tensor([[0.0, 0, 0], [float("nan"), 0, 0]]), 1, backend="scipy")
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_knn_on_gpu_stays_on_device():
     pts = torch.rand(2000, 3, device="cuda")
