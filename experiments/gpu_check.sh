@@ -8,7 +8,7 @@
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table,
 #                                                           # memcheck, racecheck (compute-sanitizer)
 #     AB_BASE=/path/to/old/tree OUT=/tmp/gpu bash experiments/gpu_check.sh ab   # A/B of the render step
-#     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/gpu_check.sh env tests bench table rates
+#     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/gpu_check.sh env tests bench rates table
 #
 # DEADLINE_S: seconds for all the stages together (a lent machine runs one command for at most
 # 10 minutes). Each stage's own limit is cut to what is left of it, less 15 s for the outputs to
@@ -85,8 +85,10 @@ for s in $STAGES; do
   rates)  # the GPU's own ceilings (FP32 matmul, device copy) and the counted workloads' floors on them
     stage rates 120 "$PY" -m experiments.perf_counts --gpu-rates "$OUT/gpu_rates.json"
     ;;
-  table)
-    stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda"
+  table)  # after rates, its floors use the GPU's measured rates (else the H100's published spec)
+    rates_arg=()
+    [ -f "$OUT/gpu_rates.json" ] && rates_arg=(--gpu-rates "$OUT/gpu_rates.json")
+    stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda" "${rates_arg[@]}"
     ;;
   *)
     echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck, ab)"

@@ -3,6 +3,8 @@
     dss-runtime-table                         # 8K / 20K / 100K points, 12 views, 256^2
     dss-runtime-table --measure 3 --backends cpp
     dss-runtime-table --quick --out /tmp/rt   # tiny sizes, for tests
+    dss-runtime-table --backends cuda --gpu-rates gpu_rates.json   # CUDA floors on the GPU's measured rates
+    dss-runtime-table --from-json rt.json --gpu-rates gpu_rates.json --out rt2   # redo the floors only
 
 Workloads (paper Table tab:speed, 256x256 images, 12 views per optimisation step):
 
@@ -338,7 +340,8 @@ def to_markdown(result: dict) -> str:
     m = result["machine"]
     cols = result["columns"]
     L = [f"# Runtime and memory (paper Table tab:speed), {s['image_size']}x{s['image_size']}, {s['views']} views per step",
-         "", f"Command: `{result['command']}`", "",
+         "", f"Command: `{result['command']}`"
+         + (f" (measurements from `{result['measured_by']}`)" if result.get("measured_by") else ""), "",
          f"Machine: {m['cpu']}, {m['cores']} cores, {m['torch_threads']} torch threads, torch {m['torch']}; "
          f"1-min load average {m.get('load_average_1min_start')} at the start, {m.get('load_average_1min_end')} at the end. "
          f"Other processes used {m.get('other_processes_mean_cores', '?')} cores on average while it ran "
@@ -411,36 +414,80 @@ def load_counts(path: str | None) -> dict | None:
     return d
 
 
+def _rate_ms(work: dict, rates: dict) -> float:
+    """Floor (ms) of counted work on a device's rates: max(flops / rate, bytes / bandwidth)."""
+    return 1e3 * max(work["flops"] / rates["flops_per_s"], work["bytes"] / rates["bytes_per_s"])
+
+
 def _published_h100_ms(work: dict) -> float:
-    return 1e3 * max(work["flops"] / H100_PUBLISHED["flops_per_s"], work["bytes"] / H100_PUBLISHED["bytes_per_s"])
+    return _rate_ms(work, H100_PUBLISHED)
 
 
-def floor_comparison(rows: list[dict], counts: dict, settings: dict) -> dict:
+def _device_floors(work: dict, rates: dict) -> tuple[float, dict]:
+    """Forward floor and per-kind step floors (ms) of a counted workload on a device's rates."""
+    fwd = _rate_ms(work, rates)
+    backward = work.get("backward") or {}
+    return fwd, {k: fwd + (_rate_ms(backward[k], rates) if k in backward else 0.0) for k in KINDS}
+
+
+def load_gpu_rates(path: str | None) -> dict | None:
+    """The rates of ``python -m experiments.perf_counts --gpu-rates OUT`` (a GPU's measured FP32
+    matmul and copy rates), as ``{"device", "flops_per_s", "bytes_per_s", "source": "measured"}``,
+    or None without a path. A missing or malformed file is an error naming it."""
+    if not path:
+        return None
+    p = Path(path)
+    if not p.is_file():
+        raise SystemExit(f"{p}: no such file (write it on the GPU machine with python -m experiments.perf_counts "
+                         f"--gpu-rates {p})")
+    try:
+        r = json.loads(p.read_text())["rates"]
+        rates = {"device": str(r["device"]), "flops_per_s": float(r["flops_per_s"]),
+                 "bytes_per_s": float(r["bytes_per_s"])}
+    except (ValueError, KeyError, TypeError) as e:
+        raise SystemExit(f"{p}: not a perf_counts --gpu-rates JSON (needs rates.device, rates.flops_per_s, "
+                         f"rates.bytes_per_s): {e!r}") from e
+    if not (rates["flops_per_s"] > 0 and rates["bytes_per_s"] > 0):
+        raise SystemExit(f"{p}: rates must be positive, got {rates}")
+    return {**rates, "source": "measured", "file": str(p)}
+
+
+def floor_comparison(rows: list[dict], counts: dict, settings: dict, gpu_rates: dict | None = None,
+                     threads: int | None = None) -> dict:
     """Measured step times against the counted floors, and the issue's targets.
 
     experiments/perf_counts.py counts the forward (projection, rasterisation, loss) and each
     kind's backward (blend backward and projection backward; for positions also the visibility
     gradient's evaluations). The forward is compared with the forward floor, forward + backward
     with the step floor of its kind (forward + that backward). Counts from before the backward
-    was counted (no ``step_floor_ms``) fall back to the forward floor and say so.
+    was counted (no ``step_floor_ms``) fall back to the forward floor and say so. The CUDA
+    column's floors use ``gpu_rates`` (measured, :func:`load_gpu_rates`) where given, else the
+    H100's published spec; the published H100 floors are kept beside them either way.
+    ``threads``: the torch threads the CPU column ran with (default: this process's).
     """
+    threads = torch.get_num_threads() if threads is None else threads
+    gpu = gpu_rates or {**H100_PUBLISHED, "source": "published"}
     by_n = {(w["points"], w["views"], w["image_size"]): w for w in counts["workloads"]}
     out = {"counts_machine": counts.get("machine"), "cpu_rates": counts.get("rates"), "h100_published": H100_PUBLISHED,
+           "gpu_rates": gpu,
            "note": "floor = max(flops / rate, bytes / bandwidth) of the counted work: forward for the forward pass, "
                    "forward + that kind's backward for a step; CPU rates measured by experiments.perf_counts, "
-                   "H100 rates published (not measured)",
+                   + (f"GPU rates measured on {gpu['device']} (perf_counts --gpu-rates)" if gpu["source"] == "measured"
+                      else "H100 rates published (not measured)"),
            "workloads": [], "targets": []}
     for r in rows:
         w = by_n.get((r["points"], settings["views"], settings["image_size"]))
         if w is None:
             continue
-        h100_fwd = _published_h100_ms(w)
         backward = w.get("backward") or {}
         step_floor = {k: (w.get("step_floor_ms") or {}).get(k, w["floor_ms"]) for k in KINDS}
-        h100_step = {k: h100_fwd + (_published_h100_ms(backward[k]) if k in backward else 0.0) for k in KINDS}
+
+        h100_fwd, h100_step = _device_floors(w, H100_PUBLISHED)
+        gpu_fwd, gpu_step = _device_floors(w, gpu)
         f = {"key": r["key"], "points": r["points"], "cpu_floor_ms": w["floor_ms"], "cpu_step_floor_ms": step_floor,
              "step_floor_counts_backward": all(k in backward for k in KINDS),
              "h100_published_floor_ms": h100_fwd, "h100_published_step_floor_ms": h100_step,
+             "gpu_floor_ms": gpu_fwd, "gpu_step_floor_ms": gpu_step,
              "flops": w["flops"], "bytes": w["bytes"], "measured": {}}
         for b in BACKENDS:
             x = r[b]
@@ -448,8 +495,8 @@ def floor_comparison(rows: list[dict], counts: dict, settings: dict) -> dict:
                 continue
             per = {}
             for k in KINDS:
-                fwd_floor = h100_fwd if b == "cuda" else w["floor_ms"]
-                st_floor = h100_step[k] if b == "cuda" else step_floor[k]
+                fwd_floor = gpu_fwd if b == "cuda" else w["floor_ms"]
+                st_floor = gpu_step[k] if b == "cuda" else step_floor[k]
                 fwd = x["per_kind"][k]["forward_ms"]
                 step = fwd + x["per_kind"][k]["backward_ms"]
                 per[k] = {"forward_ms": fwd, "step_ms": step, "ratio_forward_to_floor": fwd / fwd_floor,
@@ -462,15 +509,15 @@ def floor_comparison(rows: list[dict], counts: dict, settings: dict) -> dict:
                 st, fl = cpp[k]["step_ms"], step_floor[k]
                 out["targets"].append({
                     "target": f"2 CPU cores, {r['points']} points, {k} step: fwd+bwd <= {CPU_TARGET['step_ms']:.0f} ms "
-                              f"and <= {CPU_TARGET['floor_factor']:.0f}x floor (measured with {torch.get_num_threads()} torch threads)",
+                              f"and <= {CPU_TARGET['floor_factor']:.0f}x floor (measured with {threads} torch threads)",
                     "measured_ms": st, "floor_ms": fl, "ratio_to_floor": st / fl,
-                    "torch_threads": torch.get_num_threads(),
+                    "torch_threads": threads,
                     "met": bool(st <= CPU_TARGET["step_ms"] and st <= CPU_TARGET["floor_factor"] * fl)})
         if r["points"] in GPU_TARGET_STEP_MS:
             cu = f["measured"].get("cuda")
-            h100 = max(h100_step.values())
+            h100 = max(gpu_step.values())
             tgt = {"target": f"one H100, {r['points']} points: fwd+bwd <= {GPU_TARGET_STEP_MS[r['points']]:.0f} ms",
-                   "floor_ms": h100}
+                   "floor_ms": h100, "floor_rates": gpu["source"]}
             if cu is None:
                 tgt.update(measured_ms=None, met=None, status=r["cuda"].get("status", "not measured"))
             else:
@@ -491,15 +538,22 @@ def floor_markdown(result: dict) -> list[str]:
     fl = result["floor"]
     rates = fl.get("cpu_rates") or {}
     cm = fl.get("counts_machine") or {}
+    gpu = fl.get("gpu_rates") or {**H100_PUBLISHED, "source": "published"}
+    spec = f"({gpu['flops_per_s'] / 1e12:.1f} TFLOP/s FP32, {gpu['bytes_per_s'] / 1e12:.2f} TB/s)"
+    if gpu["source"] == "measured":
+        gpu_sentence = (f"GPU floors from rates measured on the {gpu['device']} {spec}, float32 matmul and device copy "
+                        "(python -m experiments.perf_counts --gpu-rates).")
+        gpu_col = "GPU floor step, measured rates (ms)"
+    else:
+        gpu_sentence = f"H100 floors from the published spec of the {gpu['device']} {spec}, not measured."
+        gpu_col = "H100 floor step, published spec (ms)"
     L = ["", "Against the counted floors (python -m experiments.perf_counts): the forward against the forward's "
              "work (projection, rasterisation, loss), a step against the forward plus that kind's backward (blend and "
              "projection backward; for positions also the visibility gradient's evaluations). CPU floors from rates "
              f"measured there ({rates.get('flops_per_s', float('nan')) / 1e9:.1f} GFLOP/s float32 matmul, "
-             f"{rates.get('bytes_per_s', float('nan')) / 1e9:.1f} GB/s copy; {cm.get('torch_threads')} torch threads); "
-             f"H100 floors from the published spec of the {H100_PUBLISHED['device']} "
-             f"({H100_PUBLISHED['flops_per_s'] / 1e12:.1f} TFLOP/s FP32, {H100_PUBLISHED['bytes_per_s'] / 1e12:.2f} TB/s), "
-             "not measured.", "",
-         "| application | points | backend | kind | CPU floor fwd / step (ms) | H100 floor step, published spec (ms) | fwd (ms) | fwd+bwd (ms) | fwd / floor | fwd+bwd / step floor |",
+             f"{rates.get('bytes_per_s', float('nan')) / 1e9:.1f} GB/s copy; {cm.get('torch_threads')} torch threads). "
+             + gpu_sentence, "",
+         f"| application | points | backend | kind | CPU floor fwd / step (ms) | {gpu_col} | fwd (ms) | fwd+bwd (ms) | fwd / floor | fwd+bwd / step floor |",
          "|---|---|---|---|---|---|---|---|---|---|"]
     if not all(f.get("step_floor_counts_backward", False) for f in fl["workloads"]):
         L.insert(2, "(These counts predate the backward count: the step floor is the forward floor.)")
@@ -509,7 +563,8 @@ def floor_markdown(result: dict) -> list[str]:
             for k in KINDS:
                 m = per[k]
                 L.append(f"| {apps[f['key']]} | {f['points']} | {b} | {k} | {f['cpu_floor_ms']:.2f} / "
-                         f"{f['cpu_step_floor_ms'][k]:.2f} | {f['h100_published_step_floor_ms'][k]:.4f} | "
+                         f"{f['cpu_step_floor_ms'][k]:.2f} | "
+                         f"{f.get('gpu_step_floor_ms', f['h100_published_step_floor_ms'])[k]:.4f} | "
                          f"{m['forward_ms']:.1f} | {m['step_ms']:.1f} | {_ratio(m['ratio_forward_to_floor'])} | "
                          f"{_ratio(m['ratio_step_to_floor'])} |")
     if fl["targets"]:
@@ -542,6 +597,12 @@ def parse_args(argv=None):
     ap.add_argument("--out", default="results/bench/runtime_table", help="output prefix: writes <out>.json and <out>.md")
     ap.add_argument("--counts", default="docs/perf_counts.json",
                     help="perf_counts JSON for the floor comparison (python -m experiments.perf_counts); '' to skip")
+    ap.add_argument("--gpu-rates", default=None, metavar="JSON",
+                    help="a GPU's measured rates (python -m experiments.perf_counts --gpu-rates JSON, on that GPU): "
+                         "the CUDA column's floors use them instead of the H100's published spec")
+    ap.add_argument("--from-json", default=None, metavar="JSON",
+                    help="measure nothing: read the workloads of an earlier run's JSON and redo its floor comparison "
+                         "(with --counts and --gpu-rates) and markdown into --out")
     ap.add_argument("--no-progress", action="store_true", help="no tqdm bars")
     args = ap.parse_args(argv)
     defaults = dict(views=12, image_size=256, warmup=1, measure=5, reference_measure=3,
@@ -596,8 +657,40 @@ def _contention(cpu_start, wall_s: float) -> dict:
             "other_processes_mean_cores": round(others / max(wall_s, 1e-9), 2)}
 
 
+def _write(result: dict, out: Path):
+    atomic_write_json(out.with_name(out.name + ".json"), result)
+    atomic_write_text(out.with_name(out.name + ".md"), to_markdown(result))
+    log.info("wrote %s.json and %s.md", out, out)
+
+
+def refloor(args) -> dict:
+    """--from-json: an earlier run's measurements with the floors of --counts and --gpu-rates."""
+    src = Path(args.from_json)
+    try:
+        result = json.loads(src.read_text())
+        rows, settings = result["workloads"], result["settings"]
+        _ = [(r["points"], r["key"], r["cuda"], r["cpp"]) for r in rows], settings["views"], settings["image_size"]
+    except FileNotFoundError:
+        raise SystemExit(f"{src}: no such file") from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise SystemExit(f"{src}: not a dss-runtime-table JSON ({e!r})") from e
+    counts = load_counts(args.counts)
+    if counts is None:
+        raise SystemExit(f"--from-json redoes the floor comparison and needs --counts (got {args.counts!r})")
+    result["measured_by"] = result.get("measured_by", result.get("command"))
+    result["command"] = "dss-runtime-table " + " ".join(args.argv)
+    result["floor"] = floor_comparison(rows, counts, settings, load_gpu_rates(args.gpu_rates),
+                                       threads=result.get("machine", {}).get("torch_threads"))
+    _write(result, Path(args.out))
+    return result
+
+
 def run(argv=None) -> dict:
     args = parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    if args.from_json:
+        return refloor(args)
+    gpu_rates = load_gpu_rates(args.gpu_rates)  # a bad file fails before the measurements, not after
     if args.threads:
         torch.set_num_threads(args.threads)
     from dss import _ext
@@ -612,7 +705,7 @@ def run(argv=None) -> dict:
         rows.append(run_workload(w, n, args.backends, args, cuda_ok, cuda_label))
     methods = {x["memory_method"] for r in rows for b in BACKENDS if (x := r[b]).get("status") == "measured"}
     result = {
-        "command": "dss-runtime-table " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "dss-runtime-table " + " ".join(args.argv),
         "machine": {**machine_info(), "load_average_1min_start": load_start, "load_average_1min_end": _loadavg(),
                     **_contention(cpu_start, time.perf_counter() - t_start)},
         "settings": {"views": args.views, "image_size": args.image_size, "warmup": args.warmup, "measure": args.measure,
@@ -628,12 +721,8 @@ def run(argv=None) -> dict:
     }
     counts = load_counts(args.counts)
     if counts is not None:
-        result["floor"] = floor_comparison(rows, counts, result["settings"])
-    out = Path(args.out)
-    atomic_write_json(out.with_name(out.name + ".json"), result)
-    md = to_markdown(result)
-    atomic_write_text(out.with_name(out.name + ".md"), md)
-    log.info("wrote %s.json and %s.md", out, out)
+        result["floor"] = floor_comparison(rows, counts, result["settings"], gpu_rates)
+    _write(result, Path(args.out))
     return result
 
 

@@ -282,6 +282,54 @@ def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
             perf_counts.main(["--gpu-rates", "unused.json"])
 
 
+H100_RUN = Path(__file__).resolve().parents[1] / "results" / "bench" / "gpu" / "s40_h100"
+
+
+def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
+    """--from-json --gpu-rates: session 40's H100 table with floors on that GPU's measured rates;
+    the measurements are kept as they were, the floors equal perf_counts' own on those rates."""
+    from experiments import perf_counts
+
+    src = H100_RUN / "runtime_table_cuda.json"
+    rates_file = H100_RUN / "gpu_rates.json"
+    before = json.loads(src.read_text())
+    res = rt.run(["--from-json", str(src), "--gpu-rates", str(rates_file), "--out", str(tmp_path / "rt")])
+    assert res["workloads"] == before["workloads"] and res["measured_by"] == before["command"]
+    rates = json.loads(rates_file.read_text())
+    counts = json.loads(Path(rt.parse_args([]).counts).read_text())
+    expected = {f["points"]: f for f in perf_counts.gpu_floors(counts, rates["rates"])}
+    fl = res["floor"]
+    assert fl["gpu_rates"]["source"] == "measured" and "H100" in fl["gpu_rates"]["device"]
+    for w in fl["workloads"]:
+        e = expected[w["points"]]
+        assert w["gpu_floor_ms"] == pytest.approx(e["forward_floor_ms"])
+        for k in rt.KINDS:
+            assert w["gpu_step_floor_ms"][k] == pytest.approx(e["step_floor_ms"][k])
+            m = w["measured"]["cuda"][k]
+            assert m["ratio_step_to_floor"] == pytest.approx(m["step_ms"] / e["step_floor_ms"][k])
+        # the measured H100 is slower than its datasheet: higher floors than the published ones
+        assert w["gpu_floor_ms"] > w["h100_published_floor_ms"]
+    gpu_targets = [t for t in fl["targets"] if "H100" in t["target"]]
+    assert len(gpu_targets) == 2 and all(t["met"] is True and t["floor_rates"] == "measured" for t in gpu_targets)
+    md = (tmp_path / "rt.md").read_text()
+    assert "GPU floors from rates measured on the NVIDIA H100" in md and "measurements from `dss-runtime-table" in md
+
+
+def test_bad_gpu_rates_and_tables_are_refused_with_their_names(tmp_path):
+    bad = tmp_path / "rates.json"
+    bad.write_text(json.dumps({"rates": {"device": "X", "flops_per_s": 1e12}}))
+    with pytest.raises(SystemExit, match="rates.json: not a perf_counts --gpu-rates JSON"):
+        rt.load_gpu_rates(str(bad))
+    bad.write_text(json.dumps({"rates": {"device": "X", "flops_per_s": 1e12, "bytes_per_s": 0}}))
+    with pytest.raises(SystemExit, match="must be positive"):
+        rt.load_gpu_rates(str(bad))
+    with pytest.raises(SystemExit, match="missing.json: no such file"):
+        rt.run(["--gpu-rates", str(tmp_path / "missing.json"), "--quick", "--out", str(tmp_path / "rt")])
+    with pytest.raises(SystemExit, match="rates.json: not a dss-runtime-table JSON"):
+        rt.run(["--from-json", str(bad), "--out", str(tmp_path / "rt")])
+    assert not (tmp_path / "rt.json").exists()
+
+
 def test_ab_denoise_alternates_versions_and_reads_the_jobs_wall_time(monkeypatch, tmp_path):
     """experiments.ab_denoise without running jobs: the overrides after -- reach both versions,
     base and working tree alternate, and the medians and ratio come from the jobs' own lines."""
