@@ -330,6 +330,44 @@ def test_bad_gpu_rates_and_tables_are_refused_with_their_names(tmp_path):
     assert not (tmp_path / "rt.json").exists()
 
 
+def test_runtime_chart_plots_the_tables_numbers(tmp_path):
+    """dss-fig-runtime on the shipped CPU table and session 40's H100 table: a PNG, and a JSON whose
+    numbers are the tables' own (step = forward + backward; ratios over each table's floors)."""
+    from experiments.figures import runtime_chart as rc
+
+    cpu_path = Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table.json"
+    cuda_path = H100_RUN / "runtime_table_cuda_measured_floors.json"
+    data = rc.run(["--cpu", str(cpu_path), "--cuda", str(cuda_path), "--out", str(tmp_path / "chart")])
+    png = (tmp_path / "chart.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    assert json.loads((tmp_path / "chart.json").read_text()) == json.loads(json.dumps(data))
+    cpu, cuda = json.loads(cpu_path.read_text()), json.loads(cuda_path.read_text())
+    by_key = {w["key"]: w for w in data["workloads"]}
+    assert len(by_key) == 3
+    for r, c, f in zip(cpu["workloads"], cuda["workloads"], cuda["floor"]["workloads"]):
+        w = by_key[r["key"]]
+        assert w["step_ms"]["paper_1080ti"] == r["paper_1080ti"]["forward_ms"] + r["paper_1080ti"]["backward_ms"]
+        assert w["step_ms"]["cpp"] == pytest.approx(r["cpp"]["forward_ms"] + r["cpp"]["backward_ms"])
+        assert w["step_ms"]["cuda"] == pytest.approx(c["cuda"]["forward_ms"] + c["cuda"]["backward_ms"])
+        for k in rt.KINDS:
+            assert w["ratio_to_floor"]["cuda"][k] == pytest.approx(f["measured"]["cuda"][k]["ratio_step_to_floor"])
+    assert "skipped" in by_key["denoising"]["status"]["reference"]  # the reference does not run at 100K
+    assert data["sources"]["cuda"]["floor_rates"].startswith("rates measured on the NVIDIA H100")
+
+
+def test_runtime_chart_refuses_tables_without_the_column(tmp_path):
+    from experiments.figures import runtime_chart as rc
+
+    with pytest.raises(SystemExit, match="nope.json: no such file"):
+        rc.load_table(tmp_path / "nope.json", "cpp")
+    (tmp_path / "x.json").write_text("[1, 2]")
+    with pytest.raises(SystemExit, match="x.json: not a dss-runtime-table JSON"):
+        rc.load_table(tmp_path / "x.json", "cpp")
+    cpu_path = Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table.json"
+    with pytest.raises(SystemExit, match="its cuda column was not measured"):
+        rc.load_table(cpu_path, "cuda")
+
+
 def test_ab_denoise_alternates_versions_and_reads_the_jobs_wall_time(monkeypatch, tmp_path):
     """experiments.ab_denoise without running jobs: the overrides after -- reach both versions,
     base and working tree alternate, and the medians and ratio come from the jobs' own lines."""

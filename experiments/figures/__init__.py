@@ -1,14 +1,17 @@
-"""Figures of the paper's backward-pass section, each one command writing a PNG and a JSON.
+"""Figures of the paper, each one command writing a PNG and a JSON.
 
 - ``dss-fig-gradient1d`` (:mod:`experiments.figures.gradient_1d`): Fig. 1Dplot, the gradient value
   vs pixel distance and the residual vs optimisation step, DSS vs the RBF-derived gradient.
 - ``dss-fig-twopoints`` (:mod:`experiments.figures.two_points`): Fig. twopoints, two points chasing
   two targets with DSS vs RBF.
+- ``dss-fig-runtime`` (:mod:`experiments.figures.runtime_chart`): the runtime table (Table
+  tab:speed) as a chart, from ``dss-runtime-table``'s JSONs; it uses none of the helpers below
+  except ``command_line`` and ``setup_matplotlib``.
 
-Both use toy scenes in front of one axis-aligned camera (R = I, t = 0, looking down +z), so world
+The first two use toy scenes in front of one axis-aligned camera (R = I, t = 0, looking down +z), so world
 x/y map linearly to pixels: at depth ``Z`` one world unit is ``focal / Z`` pixels.
 
-The helpers below are shared by the two figure modules.
+The helpers below are shared by the figure modules.
 """
 
 from __future__ import annotations
