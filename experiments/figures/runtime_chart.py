@@ -109,9 +109,6 @@ def chart_data(cpu: dict, cuda: dict, cpu_path: str, cuda_path: str) -> dict:
     return out
 
 
-LOG_BOTTOM_MS = 1.0  # the step chart's lower edge (ms)
-
-
 def _plain(v: float, _pos=None) -> str:
     """Log-axis tick labels as plain numbers (1, 10, 100) instead of powers of ten."""
     return f"{v:g}"
@@ -123,6 +120,8 @@ def plot(data: dict, out_png: Path):
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [1.1, 1]})
     ws = data["workloads"]
     names = [f"{w['application']}\n{w['points'] // 1000}K points" for w in ws]
+    steps = [v for w in ws for v in w["step_ms"].values()]
+    bottom = min([1.0] + [v / 2 for v in steps])  # the step chart's lower edge (ms): 1, or below the fastest
     width = 0.8 / len(SERIES)
     for i, (key, label, colour) in enumerate(SERIES):
         xs = [j + (i - (len(SERIES) - 1) / 2) * width for j in range(len(ws))]
@@ -135,11 +134,10 @@ def plot(data: dict, out_png: Path):
             ax1.text(x, v * 1.08, f"{v:.0f}" if v >= 10 else f"{v:.1f}", ha="center", va="bottom", fontsize=7)
         for x, w in zip(xs, ws):  # a measured-elsewhere column that did not run here says so
             if key in w["status"]:
-                ax1.text(x, 1.2 * LOG_BOTTOM_MS, "not run", rotation=90, ha="center", va="bottom", fontsize=6,
+                ax1.text(x, 1.2 * bottom, "not run", rotation=90, ha="center", va="bottom", fontsize=6,
                          color=colour)
     ax1.set_yscale("log")
-    top = max(v for w in ws for v in w["step_ms"].values())
-    ax1.set_ylim(LOG_BOTTOM_MS, top * 3)
+    ax1.set_ylim(bottom, max(steps) * 3)
     ax1.set_xticks(range(len(ws)), names, fontsize=8)
     ax1.set_ylabel("ms per step (forward + backward), log")
     ax1.set_title("One optimisation step, 12 views at 256x256", fontsize=10)
@@ -161,7 +159,7 @@ def plot(data: dict, out_png: Path):
     ax2.axhline(CPU_FLOOR_FACTOR, color="#2a7ab9", ls="--", lw=1, label=f"{CPU_FLOOR_FACTOR:.0f}x floor: the CPU target")
     ax2.set_yscale("log")
     ratios = [v for w in ws for r in w["ratio_to_floor"].values() for v in r.values()]
-    ax2.set_ylim(1, max(ratios + [CPU_FLOOR_FACTOR]) * 2)
+    ax2.set_ylim(min([1.0] + [v / 2 for v in ratios]), max(ratios + [CPU_FLOOR_FACTOR]) * 2)
     ax2.set_xticks(range(len(groups)), [f"{w['points'] // 1000}K\n{k}" for w, k in groups], fontsize=8)
     ax2.set_ylabel("measured step / counted floor, log")
     ax2.set_title(f"Against the counted floors (GPU: {data['sources']['cuda']['floor_rates']})", fontsize=9)
