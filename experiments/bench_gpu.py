@@ -11,7 +11,9 @@ JSON names the device; it is printed and, with ``--out``, written atomically.
 Timed, per size:
 - ``kernels``: ``project_splats_forward`` + ``sun_shade_forward`` (with the lights' directions, a
   few torch ops), ``rasterize_forward`` (cache and
-  blended image), ``visibility_backward`` (dss gradient, window 4), and their sum;
+  blended image), ``visibility_backward`` (dss gradient, window 4), and their sum; also the
+  visibility kernel's row-major walk (``visibility_backward_rows``, ``DSS_CUDA_VIS_ORDER=rows``,
+  the same bits: ``visibility_walks_equal``) against its default, partial-by-partial one;
 - ``render`` (only when ``dss.render`` accepts ``backend="cuda"``): one optimisation step,
   forward with autograd, L1 loss, backward; forward-only without grad; peak GPU memory.
 Targets (issue 5): one H100, forward + backward at most 10 ms for 20K points, 25 ms for 100K.
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import statistics
 import sys
 import time
@@ -66,6 +69,19 @@ def _timed(fn, warmup: int, repeats: int) -> dict:
     return {"median_ms": statistics.median(ts), "min_ms": min(ts), "max_ms": max(ts), "runs": repeats}
 
 
+def _with_vis_order(order: str, fn):
+    """fn() with the CUDA visibility kernel's window walk set to ``order`` (DSS_CUDA_VIS_ORDER)."""
+    old = os.environ.get("DSS_CUDA_VIS_ORDER")
+    os.environ["DSS_CUDA_VIS_ORDER"] = order
+    try:
+        return fn()
+    finally:
+        if old is None:
+            del os.environ["DSS_CUDA_VIS_ORDER"]
+        else:
+            os.environ["DSS_CUDA_VIS_ORDER"] = old
+
+
 def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, warmup: int, repeats: int) -> dict:
     """The CUDA kernels alone, on inputs prepared outside the timed region."""
     from dss.shading import SunLights
@@ -92,10 +108,14 @@ def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, war
     planes = tangent_planes(points, normals, cams, settings.occlusion_depth)
     bwd_args = (packed, attrs, idx, depth, rho, images, grad, cams.R, cams.focal, cams.principal, bg, planes,
                 settings.window, settings.window_stride, settings.cutoff, merge, settings.epsilon, 0)
+    vis = lambda: mod.visibility_backward(*bwd_args)  # noqa: E731
     res = {
         "project_and_shade": _timed(project, warmup, repeats),
         "rasterize_forward": _timed(lambda: mod.rasterize_forward(*fwd_args), warmup, repeats),
-        "visibility_backward": _timed(lambda: mod.visibility_backward(*bwd_args), warmup, repeats),
+        "visibility_backward": _with_vis_order("partials", lambda: _timed(vis, warmup, repeats)),
+        # the kernel's other walk over a window (same bits; dss_cuda.cu visibility_kernel), timed after it
+        "visibility_backward_rows": _with_vis_order("rows", lambda: _timed(vis, warmup, repeats)),
+        "visibility_walks_equal": bool(torch.equal(_with_vis_order("partials", vis), _with_vis_order("rows", vis))),
         "covered_pixels": int(mask.sum()),
         "cached_fragments": int((idx >= 0).sum()),
     }
@@ -209,8 +229,10 @@ def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, w
         row = {"points": n, "views": views, "image_size": image_size, "source": src, "K": settings.K,
                "window": settings.window}
         row["kernels"] = bench_kernels(mod, pts, nrm, cams, sigma, settings, merge, warmup, repeats)
-        log.info("%d points: kernels %.3f ms (forward %.3f, backward %.3f)", n, row["kernels"]["sum_median_ms"],
-                 row["kernels"]["rasterize_forward"]["median_ms"], row["kernels"]["visibility_backward"]["median_ms"])
+        kr = row["kernels"]
+        log.info("%d points: kernels %.3f ms (forward %.3f, backward %.3f; row walk %.3f, same bits: %s)", n,
+                 kr["sum_median_ms"], kr["rasterize_forward"]["median_ms"], kr["visibility_backward"]["median_ms"],
+                 kr["visibility_backward_rows"]["median_ms"], kr["visibility_walks_equal"])
         if render_has_cuda:
             row["render"] = bench_render_step(pts, nrm, cams, sigma, settings, warmup, repeats)
             log.info("%d points: render step %.3f ms", n, row["render"]["step_ms"])

@@ -344,7 +344,10 @@ def test_emulated_forward_equals_cpu_kernel(name, scenes, emulated, cpu_kernel):
 
 @pytest.mark.parametrize("name", list(SCENES))
 @pytest.mark.parametrize("mode", [0, 1], ids=["dss", "rbf"])
-def test_emulated_visibility_equals_cpu_kernel(name, mode, scenes, emulated, cpu_kernel):
+@pytest.mark.parametrize("order", ["partials", "rows"])
+def test_emulated_visibility_equals_cpu_kernel(name, mode, order, scenes, emulated, cpu_kernel, monkeypatch):
+    """Both walks of the CUDA visibility kernel (DSS_CUDA_VIS_ORDER) give the CPU kernel's bits."""
+    monkeypatch.setenv("DSS_CUDA_VIS_ORDER", order)
     s = scenes[name]
     cache = cpu_kernel.rasterize_forward(*forward_args(s))
     grad = random_grad(cache[3], 7)
@@ -360,6 +363,14 @@ def test_emulated_visibility_equals_cpu_kernel(name, mode, scenes, emulated, cpu
         # order: bit for bit. (The CPU kernel's AVX2 path gives the scalar path's bits,
         # tests/test_render_backward.py.)
         assert torch.equal(ga, gb), f"{(ga != gb).any(1).sum().item()} points differ, max {(ga - gb).abs().max().item()}"
+
+
+def test_emulated_visibility_refuses_an_unknown_walk(scenes, emulated, cpu_kernel, monkeypatch):
+    s = scenes["ties"]
+    cache = cpu_kernel.rasterize_forward(*forward_args(s))
+    monkeypatch.setenv("DSS_CUDA_VIS_ORDER", "columns")
+    with pytest.raises(RuntimeError, match="returned"):  # cudaErrorInvalidValue (the glue names the variable)
+        emulated.visibility_backward(*backward_args(s, cache, random_grad(cache[3], 7), 0))
 
 
 def project_args(seed: int, n: int = 700, views: int = 3, behind: int = 40):
@@ -587,6 +598,18 @@ def test_bench_gpu_says_it_needs_a_gpu(capsys):
     assert "needs a GPU" in capsys.readouterr().err
 
 
+def test_bench_gpu_sets_and_restores_the_visibility_walk(monkeypatch):
+    from experiments.bench_gpu import _with_vis_order
+
+    monkeypatch.delenv("DSS_CUDA_VIS_ORDER", raising=False)
+    assert _with_vis_order("rows", lambda: os.environ["DSS_CUDA_VIS_ORDER"]) == "rows"
+    assert "DSS_CUDA_VIS_ORDER" not in os.environ
+    monkeypatch.setenv("DSS_CUDA_VIS_ORDER", "partials")
+    with pytest.raises(ZeroDivisionError):
+        _with_vis_order("rows", lambda: 1 / 0)
+    assert os.environ["DSS_CUDA_VIS_ORDER"] == "partials"
+
+
 def test_ab_gpu_summarizes_alternating_runs(tmp_path):
     """experiments.ab_gpu --summarize: medians per tree and size over the rounds, base / work."""
     import json
@@ -682,7 +705,9 @@ def test_gpu_forward_matches_cpu_kernel(name, scenes, cuda_kernel, cpu_kernel):
 @pytest.mark.gpu
 @pytest.mark.parametrize("name", list(SCENES))
 @pytest.mark.parametrize("mode", [0, 1], ids=["dss", "rbf"])
-def test_gpu_visibility_matches_cpu_kernel(name, mode, scenes, cuda_kernel, cpu_kernel):
+@pytest.mark.parametrize("order", ["partials", "rows"])
+def test_gpu_visibility_matches_cpu_kernel(name, mode, order, scenes, cuda_kernel, cpu_kernel, monkeypatch):
+    monkeypatch.setenv("DSS_CUDA_VIS_ORDER", order)
     s = scenes[name]
     sg = _to(s, "cuda")
     cache = cpu_kernel.rasterize_forward(*forward_args(s))

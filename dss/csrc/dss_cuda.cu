@@ -37,6 +37,8 @@
 #include <climits>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
+#include <cstring>
 
 // Kernel launch, as a macro so that tests/cuda_emu can run these kernels on CPU threads.
 #ifndef DSS_LAUNCH
@@ -407,6 +409,14 @@ __device__ __forceinline__ void vis_eval_pixel(const float* __restrict__ s, cons
 
 // Per (view, point): the window loop of dss_cpu.cpp visibility_backward over the pixel records,
 // its contributions added in the same partial sums (dss_splat::vis_partial) in the same order.
+// Two walks give those bits (each partial's contributions arrive in row-major order in both):
+// kRows = false, partial by partial, each over its columns (since session 28: one column of a
+// 9-wide window at a time, so a window's records are read 9 times, a column apart); kRows = true,
+// one row-major pass with every partial's sum open at once (t in local memory). Session 40 found
+// this kernel 1.34x slower at 100K points than session 27's row-major walk (which summed in
+// another order); launch_visibility takes the row walk when DSS_CUDA_VIS_ORDER=rows, so that
+// both can be timed on one GPU (not yet run on one).
+template <bool kRows>
 __global__ void visibility_kernel(const float* __restrict__ P, const float* __restrict__ A,
                                   const int32_t* __restrict__ I, const float* __restrict__ REC,
                                   const float* __restrict__ Rm, const float* __restrict__ F,
@@ -439,22 +449,40 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
   // by partial, each over its columns in row-major order
   const int mw = dss_splat::vis_window_runs(window), nq = dss_splat::vis_partial_count(window);
   double acc[3] = {0, 0, 0};
-  for (int q = 0; q < nq; ++q) {
-    const int c0 = q < 8 ? q : mw + q - 8, c1 = q < 8 ? mw : c0 + 1, cstep = q < 8 ? 8 : 1;
-    double t[3] = {0, 0, 0};
+  if constexpr (kRows) {
+    double t[kMaxVisPartials][3];
+    for (int q = 0; q < nq; ++q) t[q][0] = t[q][1] = t[q][2] = 0.0;
     for (int64_t dy = -window; dy <= window; dy += stride) {
       const int64_t i = ic + dy;
       if (i < 0 || i >= H) continue;
       const float py = (float)i + 0.5f;
-      for (int c = c0; c < c1; c += cstep) {
-        if (c % stride) continue;  // sparse windows visit every stride-th column
+      for (int c = 0; c <= 2 * window; c += stride) {  // stride-th columns from the first: c % stride == 0
         const int64_t j = jc + c - window;
         if (j < 0 || j >= W) continue;
         vis_eval_pixel(s, wk, pl, I, REC, RS, k, v * HW + i * W + j, (float)j + 0.5f, py, K, C, f, cx, cy, inv_f, u,
-                       vv, z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t);
+                       vv, z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t[dss_splat::vis_partial(c, mw)]);
       }
     }
-    for (int a = 0; a < 3; ++a) acc[a] += t[a];
+    for (int q = 0; q < nq; ++q)
+      for (int a = 0; a < 3; ++a) acc[a] += t[q][a];
+  } else {
+    for (int q = 0; q < nq; ++q) {
+      const int c0 = q < 8 ? q : mw + q - 8, c1 = q < 8 ? mw : c0 + 1, cstep = q < 8 ? 8 : 1;
+      double t[3] = {0, 0, 0};
+      for (int64_t dy = -window; dy <= window; dy += stride) {
+        const int64_t i = ic + dy;
+        if (i < 0 || i >= H) continue;
+        const float py = (float)i + 0.5f;
+        for (int c = c0; c < c1; c += cstep) {
+          if (c % stride) continue;  // sparse windows visit every stride-th column
+          const int64_t j = jc + c - window;
+          if (j < 0 || j >= W) continue;
+          vis_eval_pixel(s, wk, pl, I, REC, RS, k, v * HW + i * W + j, (float)j + 0.5f, py, K, C, f, cx, cy, inv_f,
+                         u, vv, z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t);
+        }
+      }
+      for (int a = 0; a < 3; ++a) acc[a] += t[a];
+    }
   }
   const float* Rv = Rm + v * 9;  // world contribution = R^T acc
 #pragma unroll
@@ -658,6 +686,12 @@ cudaError_t dss_cuda::launch_rasterize_tiles(const float* packed, int64_t V, int
   return cudaGetLastError();
 }
 
+int dss_cuda::visibility_order() {
+  const char* e = std::getenv("DSS_CUDA_VIS_ORDER");
+  if (e == nullptr || *e == '\0' || std::strcmp(e, "partials") == 0) return 0;
+  return std::strcmp(e, "rows") == 0 ? 1 : -1;
+}
+
 cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs, const int32_t* idx,
                                         const float* depth, const float* rho, const float* images,
                                         const float* grad, const float* R, const float* focal,
@@ -672,9 +706,18 @@ cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs,
     DSS_LAUNCH(vis_records_kernel, blocks_for(pixels, kThreads1D), kThreads1D, stream)(
         attrs, idx, depth, rho, images, grad, background, V, N, H, W, K, C, merge, records);
   }
-  DSS_LAUNCH(visibility_kernel, blocks_for(V * N, 128), 128, stream)(packed, attrs, idx, records, R, focal,
-                                                                       principal, planes, V, N, H, W, K, C, window,
-                                                                       stride, cutoff, merge, eps, mode, partial);
+  const int order = visibility_order();
+  if (order < 0) return cudaErrorInvalidValue;
+#define DSS_VIS(ROWS)                                                                                        \
+  DSS_LAUNCH(visibility_kernel<ROWS>, blocks_for(V * N, 128), 128, stream)(packed, attrs, idx, records, R, focal, \
+                                                                           principal, planes, V, N, H, W, K, C,  \
+                                                                           window, stride, cutoff, merge, eps,   \
+                                                                           mode, partial)
+  if (order == 1)
+    DSS_VIS(true);
+  else
+    DSS_VIS(false);
+#undef DSS_VIS
   return cudaGetLastError();
 }
 

@@ -86,6 +86,14 @@ cudaError_t launch_blend_backward(const float* packed, const float* attrs, const
 // vis_record_floats(K, C) f32, workspace: the pixel records of dss_cpu.cpp), then one thread per (view, point): partial
 // (V, N, 3) f64 receives R_v^T acc_v, the world-space contribution of view v (zero where the
 // splat is not valid). mode 0: dss, 1: rbf.
+// The visibility kernel's walk over a window (both give the same bits; see visibility_kernel in
+// dss_cuda.cu), from the environment variable DSS_CUDA_VIS_ORDER: 0 for "partials" (or unset, the
+// default), 1 for "rows", -1 for any other value (launch_visibility then returns
+// cudaErrorInvalidValue).
+int visibility_order();
+// The most partial sums a window has (dss_splat::vis_partial_count <= 8 + 7).
+constexpr int kMaxVisPartials = 15;
+
 cudaError_t launch_visibility(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
                               const float* rho, const float* images, const float* grad, const float* R,
                               const float* focal, const float* principal, const float* background,

@@ -8,6 +8,7 @@
 #include <torch/extension.h>
 
 #include <climits>
+#include <cstdlib>
 #include <vector>
 
 #include "dss_cuda.h"
@@ -168,6 +169,8 @@ torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, tor
   TORCH_CHECK(stride >= 1, "window stride must be >= 1");
   TORCH_CHECK(window >= 0 && window < (1 << 20), "window must be in [0, 2^20)");
   TORCH_CHECK(mode == 0 || mode == 1, "mode must be 0 (dss) or 1 (rbf)");
+  TORCH_CHECK(dss_cuda::visibility_order() >= 0, "the environment variable DSS_CUDA_VIS_ORDER must be 'partials' "
+              "(the default) or 'rows', got '", std::getenv("DSS_CUDA_VIS_ORDER"), "'");
   DSS_DEVICE_GUARD(packed);
   const CacheInputs in = cache_inputs(packed, attrs, idx, depth, rho, images, grad);
   const int64_t V = in.V, N = in.N, H = in.H, W = in.W, K = in.K, C = in.C;
