@@ -28,6 +28,7 @@ import os
 import statistics
 import sys
 import time
+from functools import partial
 
 import torch
 
@@ -67,6 +68,23 @@ def _timed(fn, warmup: int, repeats: int) -> dict:
         torch.cuda.synchronize()
         ts.append(1e3 * (time.perf_counter() - t0))
     return {"median_ms": statistics.median(ts), "min_ms": min(ts), "max_ms": max(ts), "runs": repeats}
+
+
+def _timed_in_turn(fns: list, warmup: int, repeats: int) -> list[dict]:
+    """Like :func:`_timed` for several functions, called in turn (a, b, a, b, ...) so that a drift
+    of the GPU's clocks falls on all of them alike."""
+    for _ in range(warmup):
+        for fn in fns:
+            fn()
+    ts = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, t in zip(fns, ts):
+            torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            fn()
+            torch.cuda.synchronize()
+            t.append(1e3 * (time.perf_counter() - t0))
+    return [{"median_ms": statistics.median(t), "min_ms": min(t), "max_ms": max(t), "runs": repeats} for t in ts]
 
 
 def _with_vis_order(order: str, fn):
@@ -112,9 +130,9 @@ def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, war
     res = {
         "project_and_shade": _timed(project, warmup, repeats),
         "rasterize_forward": _timed(lambda: mod.rasterize_forward(*fwd_args), warmup, repeats),
-        "visibility_backward": _with_vis_order("partials", lambda: _timed(vis, warmup, repeats)),
-        # the kernel's other walk over a window (same bits; dss_cuda.cu visibility_kernel), timed after it
-        "visibility_backward_rows": _with_vis_order("rows", lambda: _timed(vis, warmup, repeats)),
+        # the kernel's two walks over a window (same bits; dss_cuda.cu visibility_kernel), call by call in turn
+        **dict(zip(("visibility_backward", "visibility_backward_rows"),
+                   _timed_in_turn([partial(_with_vis_order, o, vis) for o in ("partials", "rows")], warmup, repeats))),
         "visibility_walks_equal": bool(torch.equal(_with_vis_order("partials", vis), _with_vis_order("rows", vis))),
         "covered_pixels": int(mask.sum()),
         "cached_fragments": int((idx >= 0).sum()),

@@ -19,8 +19,9 @@
 # set DSS_BENCH_CLOUDS to a folder of clouds sampled on a machine that has it (see
 # experiments/bench_render.py benchmark_cloud) to time the same kangaroo clouds as the CPU tables.
 # Each stage's output goes to $OUT/<stage>.txt; the JSONs to $OUT. A failing stage does not stop
-# the later ones; the exit status is the number of failed stages. A full run writes 12 files; where
-# a tool returns only a few files from the GPU machine, write to a scratch OUT and pack it, e.g.
+# the later ones; the exit status is the number of failed stages. The default stages write 10 files
+# and memcheck and racecheck 2 more; where a tool returns only a few files from the GPU machine,
+# write to a scratch OUT and pack it, e.g.
 #     OUT=/tmp/g bash experiments/gpu_check.sh ...; tar -C /tmp/g -cf "$RETURNED/gpu.tar" .
 set -uo pipefail
 OUT=${OUT:-results/gpu}
@@ -64,8 +65,11 @@ for s in $STAGES; do
   tests)  # builds both modules (CPU kernel for the comparisons), then every gpu-marked test
     stage tests 420 "$PY" -m pytest -p no:cacheprovider -q -m gpu -ra tests/test_cuda_build.py tests/test_render_cuda.py tests/test_render_backward.py tests/test_knn.py
     ;;
-  memcheck)  # the kernel tests under compute-sanitizer (out-of-bounds and misaligned accesses); run after tests (built)
-    stage memcheck 240 compute-sanitizer --tool memcheck --error-exitcode 9 "$PY" -m pytest -p no:cacheprovider -q -m gpu \
+  memcheck)  # the kernel tests under compute-sanitizer (out-of-bounds and misaligned accesses); run after tests (built).
+    # Without torch's caching allocator every tensor is its own allocation, so an access past a
+    # tensor's end is caught even where the cache would have put another tensor there.
+    stage memcheck 240 env PYTORCH_NO_CUDA_MEMORY_CACHING=1 compute-sanitizer --tool memcheck --error-exitcode 9 \
+      "$PY" -m pytest -p no:cacheprovider -q -m gpu \
       tests/test_cuda_build.py -k "not denoising_sized"
     ;;
   racecheck)  # shared-memory hazards of the tiled kernels, on the scenes with multi-batch bins and depth ties
@@ -83,12 +87,15 @@ for s in $STAGES; do
     stage ab 500 bash -c "for r in 1 2 3; do for t in \"\$AB_BASE\" .; do TORCH_EXTENSIONS_DIR=$TORCH_EXTENSIONS_DIR/\$(basename \"\$t\") PYTHONPATH=\"\$t\":$PWD $PY experiments/ab_gpu.py --label \"\$t\" || exit 1; done; done"
     ;;
   rates)  # the GPU's own ceilings (FP32 matmul, device copy) and the counted workloads' floors on them
+    rm -f "$OUT/gpu_rates.json"  # never let the table stage read an earlier run's rates
     stage rates 120 "$PY" -m experiments.perf_counts --gpu-rates "$OUT/gpu_rates.json"
     ;;
   table)  # after rates, its floors use the GPU's measured rates (else the H100's published spec)
     rates_arg=()
     [ -f "$OUT/gpu_rates.json" ] && rates_arg=(--gpu-rates "$OUT/gpu_rates.json")
-    stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda" "${rates_arg[@]}"
+    # (the ${a[@]+...} form: bash < 4.4 calls an empty array unbound under set -u)
+    stage table 420 "$PY" -m experiments.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda" \
+      ${rates_arg[@]+"${rates_arg[@]}"}
     ;;
   *)
     echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck, ab)"

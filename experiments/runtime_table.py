@@ -430,6 +430,15 @@ def _device_floors(work: dict, rates: dict) -> tuple[float, dict]:
     return fwd, {k: fwd + (_rate_ms(backward[k], rates) if k in backward else 0.0) for k in KINDS}
 
 
+def check_rates_device(gpu_rates: dict | None, rows: list[dict], cuda_column: str):
+    """Refuse GPU rates measured on another device than the one the CUDA column ran on."""
+    if gpu_rates is None or not any(r["cuda"].get("status") == "measured" for r in rows):
+        return
+    if gpu_rates["device"] not in cuda_column:
+        raise SystemExit(f"{gpu_rates['file']}: rates measured on {gpu_rates['device']!r}, but the CUDA column ran "
+                         f"on another device ({cuda_column!r}); measure the rates on that GPU")
+
+
 def load_gpu_rates(path: str | None) -> dict | None:
     """The rates of ``python -m experiments.perf_counts --gpu-rates OUT`` (a GPU's measured FP32
     matmul and copy rates), as ``{"device", "flops_per_s", "bytes_per_s", "source": "measured"}``,
@@ -573,7 +582,7 @@ def floor_markdown(result: dict) -> list[str]:
         for t in fl["targets"]:
             meas = f"{t['measured_ms']:.1f}" if t.get("measured_ms") is not None else t.get("status", "not measured")
             ratio = _ratio(t["ratio_to_floor"]) if t.get("ratio_to_floor") is not None else "-"
-            met = {True: "yes", False: "no", None: "not measured"}[t["met"]]
+            met = {True: "yes", False: "no"}.get(t["met"], t.get("status", "not measured"))
             L.append(f"| {t['target']} | {meas} | {t['floor_ms']:.4g} | {ratio} | {met} |")
     return L
 
@@ -679,7 +688,9 @@ def refloor(args) -> dict:
         raise SystemExit(f"--from-json redoes the floor comparison and needs --counts (got {args.counts!r})")
     result["measured_by"] = result.get("measured_by", result.get("command"))
     result["command"] = "dss-runtime-table " + " ".join(args.argv)
-    result["floor"] = floor_comparison(rows, counts, settings, load_gpu_rates(args.gpu_rates),
+    gpu_rates = load_gpu_rates(args.gpu_rates)
+    check_rates_device(gpu_rates, rows, str(result.get("columns", {}).get("cuda", "")))
+    result["floor"] = floor_comparison(rows, counts, settings, gpu_rates,
                                        threads=result.get("machine", {}).get("torch_threads"))
     _write(result, Path(args.out))
     return result
@@ -719,6 +730,7 @@ def run(argv=None) -> dict:
         "memory_method": "; ".join(sorted(methods)) or "-",
         "workloads": rows,
     }
+    check_rates_device(gpu_rates, rows, result["columns"]["cuda"])
     counts = load_counts(args.counts)
     if counts is not None:
         result["floor"] = floor_comparison(rows, counts, result["settings"], gpu_rates)

@@ -315,6 +315,30 @@ def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
     assert "GPU floors from rates measured on the NVIDIA H100" in md and "measurements from `dss-runtime-table" in md
 
 
+def test_gpu_rates_of_another_device_are_refused(tmp_path):
+    """The H200's rates cannot be the floors of the H100's CUDA column."""
+    h200_rates = H100_RUN.parent / "s40_h200" / "gpu_rates.json"
+    with pytest.raises(SystemExit, match="gpu_rates.json: rates measured on 'NVIDIA H200'.*another device"):
+        rt.run(["--from-json", str(H100_RUN / "runtime_table_cuda.json"), "--gpu-rates", str(h200_rates),
+                "--out", str(tmp_path / "rt")])
+    assert not (tmp_path / "rt.json").exists()
+
+
+def test_runtime_chart_reads_tables_of_older_versions(tmp_path):
+    """A CPU table from before the step floors (session 21's code): ratios on its forward floor."""
+    from experiments.figures import runtime_chart as rc
+
+    old = Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table_cpp_6647acd.json"
+    table = json.loads(old.read_text())
+    data = rc.run(["--cpu", str(old), "--cuda", str(H100_RUN / "runtime_table_cuda.json"), "--out", str(tmp_path / "c")])
+    for w, f in zip(data["workloads"], table["floor"]["workloads"]):
+        floors = f.get("cpu_step_floor_ms") or {k: f["cpu_floor_ms"] for k in rt.KINDS}
+        r = next(r for r in table["workloads"] if r["key"] == w["key"])["cpp"]["per_kind"]
+        for k in rt.KINDS:
+            assert w["ratio_to_floor"]["cpp"][k] == pytest.approx((r[k]["forward_ms"] + r[k]["backward_ms"]) / floors[k])
+    assert (tmp_path / "c.png").is_file()
+
+
 def test_bad_gpu_rates_and_tables_are_refused_with_their_names(tmp_path):
     bad = tmp_path / "rates.json"
     bad.write_text(json.dumps({"rates": {"device": "X", "flops_per_s": 1e12}}))

@@ -409,7 +409,9 @@ __device__ __forceinline__ void vis_eval_pixel(const float* __restrict__ s, cons
 
 // Per (view, point): the window loop of dss_cpu.cpp visibility_backward over the pixel records,
 // its contributions added in the same partial sums (dss_splat::vis_partial) in the same order.
-// Two walks give those bits (each partial's contributions arrive in row-major order in both):
+// Two walks keep that order (each partial's contributions arrive in row-major order in both; the
+// tests compare the float32 outputs, which a reordered double sum rarely changes, so the order
+// itself is kept by construction):
 // kRows = false, partial by partial, each over its columns (since session 28: one column of a
 // 9-wide window at a time, so a window's records are read 9 times, a column apart); kRows = true,
 // one row-major pass with every partial's sum open at once (t in local memory). Session 40 found
@@ -699,6 +701,8 @@ cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs,
                                         int64_t V, int64_t N, int H, int W, int K, int C, int window, int stride,
                                         float cutoff, float merge, float eps, int mode, float* records,
                                         double* partial, cudaStream_t stream) {
+  const int order = visibility_order();
+  if (order < 0) return cudaErrorInvalidValue;
   if (V * N == 0) return cudaSuccess;
   if (K < 1 || K > kMaxK || C < 1 || C > kMaxC || stride < 1 || window < 0) return cudaErrorInvalidValue;
   const int64_t pixels = V * (int64_t)H * W;
@@ -706,8 +710,6 @@ cudaError_t dss_cuda::launch_visibility(const float* packed, const float* attrs,
     DSS_LAUNCH(vis_records_kernel, blocks_for(pixels, kThreads1D), kThreads1D, stream)(
         attrs, idx, depth, rho, images, grad, background, V, N, H, W, K, C, merge, records);
   }
-  const int order = visibility_order();
-  if (order < 0) return cudaErrorInvalidValue;
 #define DSS_VIS(ROWS)                                                                                        \
   DSS_LAUNCH(visibility_kernel<ROWS>, blocks_for(V * N, 128), 128, stream)(packed, attrs, idx, records, R, focal, \
                                                                            principal, planes, V, N, H, W, K, C,  \

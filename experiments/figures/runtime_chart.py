@@ -50,8 +50,9 @@ def load_table(path: str | Path, column: str) -> dict:
     try:
         d = json.loads(p.read_text())
         rows = d["workloads"]
-        _ = [(r["key"], r["points"], r["position_steps"], r["normal_steps"], r["paper_1080ti"], r[column]) for r in rows]
-    except (ValueError, KeyError, TypeError) as e:
+        _ = [(r["key"], r["points"], r["position_steps"], r["normal_steps"], r["paper_1080ti"]["forward_ms"],
+              r[column].get("status")) for r in rows]
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
         raise SystemExit(f"{p}: not a dss-runtime-table JSON ({e!r})") from e
     if not any(r[column].get("status") == "measured" for r in rows):
         raise SystemExit(f"{p}: its {column} column was not measured in any workload "
@@ -61,6 +62,18 @@ def load_table(path: str | Path, column: str) -> dict:
 
 def _floor_rows(table: dict) -> dict:
     return {f["key"]: f for f in (table.get("floor") or {}).get("workloads", [])}
+
+
+def _step_floors(f: dict | None, col: str) -> dict | None:
+    """Per-kind step floors (ms) of one workload's floor row for a column, as its table computed
+    them; tables of older versions fall back as dss-runtime-table did then (the forward floor where
+    no step floor was counted), and a table without floors gives None."""
+    if f is None:
+        return None
+    if col == "cpp":
+        return f.get("cpu_step_floor_ms") or {k: f["cpu_floor_ms"] for k in KINDS}
+    return (f.get("gpu_step_floor_ms") or f.get("h100_published_step_floor_ms")
+            or {k: f["h100_published_floor_ms"] for k in KINDS})
 
 
 def _gpu_floor_note(table: dict) -> str:
@@ -91,18 +104,18 @@ def chart_data(cpu: dict, cuda: dict, cpu_path: str, cuda_path: str) -> dict:
         w = {"key": r["key"], "application": r["application"], "points": r["points"],
              "steps": {"position": r["position_steps"], "normal": r["normal_steps"]},
              "step_ms": {"paper_1080ti": pp["forward_ms"] + pp["backward_ms"]}, "ratio_to_floor": {}, "status": {}}
-        for col, row, floors, floor_key in (("cpp", r, cpu_floors, "cpu_step_floor_ms"),
-                                            ("reference", r, cpu_floors, "cpu_step_floor_ms"),
-                                            ("cuda", cu, cuda_floors, "gpu_step_floor_ms")):
+        for col, row, floors in (("cpp", r, cpu_floors), ("reference", r, cpu_floors), ("cuda", cu, cuda_floors)):
             x = (row or {}).get(col) or {}
             if x.get("status") != "measured":
                 w["status"][col] = x.get("status", "no such workload in the table")
                 continue
             w["step_ms"][col] = x["forward_ms"] + x["backward_ms"]
-            f = floors.get(r["key"])
-            if f is None or col == "reference":
+            if col == "reference":
                 continue
-            fk = f.get(floor_key) or f["h100_published_step_floor_ms"]  # tables from before --gpu-rates
+            fk = _step_floors(floors.get(r["key"]), col)
+            if fk is None:
+                w["status"][col] = "measured; no counted floor in its table"
+                continue
             w["ratio_to_floor"][col] = {k: (x["per_kind"][k]["forward_ms"] + x["per_kind"][k]["backward_ms"]) / fk[k]
                                         for k in KINDS}
         out["workloads"].append(w)
@@ -132,8 +145,8 @@ def plot(data: dict, out_png: Path):
         ax1.bar([p[0] for p in pts], [p[1] for p in pts], width, label=label, color=colour)
         for x, v in pts:
             ax1.text(x, v * 1.08, f"{v:.0f}" if v >= 10 else f"{v:.1f}", ha="center", va="bottom", fontsize=7)
-        for x, w in zip(xs, ws):  # a measured-elsewhere column that did not run here says so
-            if key in w["status"]:
+        for x, w in zip(xs, ws):  # a column that did not run for this workload says so
+            if key not in w["step_ms"]:
                 ax1.text(x, 1.2 * bottom, "not run", rotation=90, ha="center", va="bottom", fontsize=6,
                          color=colour)
     ax1.set_yscale("log")
