@@ -56,22 +56,8 @@ def _cameras(points: torch.Tensor, views: int, size: int):
     return cameras_for(points, views, size)
 
 
-def _timed(fn, warmup: int, repeats: int) -> dict:
-    for _ in range(warmup):
-        fn()
-    torch.cuda.synchronize()
-    ts = []
-    for _ in range(repeats):
-        torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        torch.cuda.synchronize()
-        ts.append(1e3 * (time.perf_counter() - t0))
-    return {"median_ms": statistics.median(ts), "min_ms": min(ts), "max_ms": max(ts), "runs": repeats}
-
-
 def _timed_in_turn(fns: list, warmup: int, repeats: int) -> list[dict]:
-    """Like :func:`_timed` for several functions, called in turn (a, b, a, b, ...) so that a drift
+    """Synchronised timings of several functions, called in turn (a, b, a, b, ...) so that a drift
     of the GPU's clocks falls on all of them alike."""
     for _ in range(warmup):
         for fn in fns:
@@ -85,6 +71,11 @@ def _timed_in_turn(fns: list, warmup: int, repeats: int) -> list[dict]:
             torch.cuda.synchronize()
             t.append(1e3 * (time.perf_counter() - t0))
     return [{"median_ms": statistics.median(t), "min_ms": min(t), "max_ms": max(t), "runs": repeats} for t in ts]
+
+
+def _timed(fn, warmup: int, repeats: int) -> dict:
+    """Median, min and max ms of ``repeats`` synchronised calls after ``warmup`` untimed ones."""
+    return _timed_in_turn([fn], warmup, repeats)[0]
 
 
 def _with_vis_order(order: str, fn):

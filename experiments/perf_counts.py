@@ -126,12 +126,18 @@ def measure_gpu_rates(seconds: float = 1.0, device: str = "cuda") -> dict:
                     "1 GiB device-to-device copy, read + write"}
 
 
+def step_floors(work: dict, rates: dict) -> tuple[float, dict]:
+    """A counted workload's forward floor and, per counted backward kind, its step floor (forward +
+    that backward), in ms, on a device's rates."""
+    fwd = floors(work, rates)["floor_ms"]
+    return fwd, {k: fwd + floors(b, rates)["floor_ms"] for k, b in (work.get("backward") or {}).items()}
+
+
 def gpu_floors(counts: dict, rates: dict) -> list[dict]:
     """Forward and step floors (ms) of the counted workloads on the measured GPU rates."""
     rows = []
     for w in counts["workloads"]:
-        fwd = floors(w, rates)["floor_ms"]
-        steps = {k: fwd + floors(b, rates)["floor_ms"] for k, b in (w.get("backward") or {}).items()}
+        fwd, steps = step_floors(w, rates)
         rows.append({"points": w["points"], "views": w["views"], "image_size": w["image_size"], "forward_floor_ms": fwd,
                      "step_floor_ms": steps})
     return rows

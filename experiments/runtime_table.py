@@ -66,6 +66,7 @@ from dss.losses import smape_loss
 from dss.render import RenderSettings, render
 from dss.splats import auto_sigma
 from dss.views import SphereViewSampler
+from experiments import perf_counts
 from experiments.bench_render import benchmark_cloud, machine_info
 
 log = logging.getLogger("dss-runtime-table")
@@ -108,6 +109,7 @@ PAPER_DEVICE = "NVIDIA GTX 1080Ti, CUDA 10.0 (published, paper Table tab:speed)"
 # Published peak rates of one H100 SXM5 80 GB (NVIDIA datasheet): FP32 (non-tensor) and HBM3
 # bandwidth. A spec, not a measurement: the H100 floor below is counted work over these.
 H100_PUBLISHED = {"device": "NVIDIA H100 SXM5 80 GB", "flops_per_s": 66.9e12, "bytes_per_s": 3.35e12}
+PUBLISHED_GPU_RATES = {**H100_PUBLISHED, "source": "published"}  # the CUDA floors' rates without --gpu-rates
 # Issue 5 targets: forward + backward of one step (12 views, 256^2).
 CPU_TARGET = {"points": 20000, "step_ms": 250.0, "floor_factor": 4.0}
 GPU_TARGET_STEP_MS = {20000: 10.0, 100000: 25.0}
@@ -414,27 +416,20 @@ def load_counts(path: str | None) -> dict | None:
     return d
 
 
-def _rate_ms(work: dict, rates: dict) -> float:
-    """Floor (ms) of counted work on a device's rates: max(flops / rate, bytes / bandwidth)."""
-    return 1e3 * max(work["flops"] / rates["flops_per_s"], work["bytes"] / rates["bytes_per_s"])
-
-
 def _published_h100_ms(work: dict) -> float:
-    return _rate_ms(work, H100_PUBLISHED)
+    return perf_counts.floors(work, H100_PUBLISHED)["floor_ms"]
 
 
 def _device_floors(work: dict, rates: dict) -> tuple[float, dict]:
-    """Forward floor and per-kind step floors (ms) of a counted workload on a device's rates."""
-    fwd = _rate_ms(work, rates)
-    backward = work.get("backward") or {}
-    return fwd, {k: fwd + (_rate_ms(backward[k], rates) if k in backward else 0.0) for k in KINDS}
+    """Forward floor and per-kind step floors (ms) of a counted workload on a device's rates (a
+    kind whose backward was not counted: the forward floor)."""
+    fwd, steps = perf_counts.step_floors(work, rates)
+    return fwd, {k: steps.get(k, fwd) for k in KINDS}
 
 
-def check_rates_device(gpu_rates: dict | None, rows: list[dict], cuda_column: str):
-    """Refuse GPU rates measured on another device than the one the CUDA column ran on."""
-    if gpu_rates is None or not any(r["cuda"].get("status") == "measured" for r in rows):
-        return
-    if gpu_rates["device"] not in cuda_column:
+def check_rates_device(gpu_rates: dict | None, cuda_column: str):
+    """Refuse GPU rates measured on another device than the one the CUDA column runs (ran) on."""
+    if gpu_rates is not None and gpu_rates["device"] not in cuda_column:
         raise SystemExit(f"{gpu_rates['file']}: rates measured on {gpu_rates['device']!r}, but the CUDA column ran "
                          f"on another device ({cuda_column!r}); measure the rates on that GPU")
 
@@ -475,7 +470,7 @@ def floor_comparison(rows: list[dict], counts: dict, settings: dict, gpu_rates: 
     ``threads``: the torch threads the CPU column ran with (default: this process's).
     """
     threads = torch.get_num_threads() if threads is None else threads
-    gpu = gpu_rates or {**H100_PUBLISHED, "source": "published"}
+    gpu = gpu_rates or PUBLISHED_GPU_RATES
     by_n = {(w["points"], w["views"], w["image_size"]): w for w in counts["workloads"]}
     out = {"counts_machine": counts.get("machine"), "cpu_rates": counts.get("rates"), "h100_published": H100_PUBLISHED,
            "gpu_rates": gpu,
@@ -547,7 +542,7 @@ def floor_markdown(result: dict) -> list[str]:
     fl = result["floor"]
     rates = fl.get("cpu_rates") or {}
     cm = fl.get("counts_machine") or {}
-    gpu = fl.get("gpu_rates") or {**H100_PUBLISHED, "source": "published"}
+    gpu = fl.get("gpu_rates") or PUBLISHED_GPU_RATES  # (tables from before --gpu-rates)
     spec = f"({gpu['flops_per_s'] / 1e12:.1f} TFLOP/s FP32, {gpu['bytes_per_s'] / 1e12:.2f} TB/s)"
     if gpu["source"] == "measured":
         gpu_sentence = (f"GPU floors from rates measured on the {gpu['device']} {spec}, float32 matmul and device copy "
@@ -689,7 +684,8 @@ def refloor(args) -> dict:
     result["measured_by"] = result.get("measured_by", result.get("command"))
     result["command"] = "dss-runtime-table " + " ".join(args.argv)
     gpu_rates = load_gpu_rates(args.gpu_rates)
-    check_rates_device(gpu_rates, rows, str(result.get("columns", {}).get("cuda", "")))
+    if any(r["cuda"].get("status") == "measured" for r in rows):
+        check_rates_device(gpu_rates, str(result.get("columns", {}).get("cuda", "")))
     result["floor"] = floor_comparison(rows, counts, settings, gpu_rates,
                                        threads=result.get("machine", {}).get("torch_threads"))
     _write(result, Path(args.out))
@@ -709,6 +705,8 @@ def run(argv=None) -> dict:
     if "cpp" in args.backends and not _ext.cpu_available():
         raise SystemExit(f"the C++ backend is not available: {_ext.build_error()}")
     cuda_ok, cuda_label = cuda_status()
+    if cuda_ok and "cuda" in args.backends:  # before the measurements, not after
+        check_rates_device(gpu_rates, cuda_label)
     load_start, cpu_start, t_start = _loadavg(), _cpu_seconds(), time.perf_counter()
     rows = []
     for w, n in zip(args.chosen, args.points):
@@ -730,7 +728,6 @@ def run(argv=None) -> dict:
         "memory_method": "; ".join(sorted(methods)) or "-",
         "workloads": rows,
     }
-    check_rates_device(gpu_rates, rows, result["columns"]["cuda"])
     counts = load_counts(args.counts)
     if counts is not None:
         result["floor"] = floor_comparison(rows, counts, result["settings"], gpu_rates)

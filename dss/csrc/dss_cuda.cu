@@ -447,9 +447,14 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
   const float* pl = PL + item * 3;
   const int ic = (int)floorf(vv), jc = (int)floorf(u);
   const int64_t HW = (int64_t)H * W;
-  // the window's partial sums in the order of dss_splat::vis_partial (the CPU kernel's): partial
-  // by partial, each over its columns in row-major order
+  // the window's partial sums in the order of dss_splat::vis_partial (the CPU kernel's): each
+  // partial over its columns in row-major order
   const int mw = dss_splat::vis_window_runs(window), nq = dss_splat::vis_partial_count(window);
+  // pixel (i, j) of the window (on the image), its contribution added to t
+  auto eval = [&](int64_t i, int64_t j, float py, double* t) {
+    vis_eval_pixel(s, wk, pl, I, REC, RS, k, v * HW + i * W + j, (float)j + 0.5f, py, K, C, f, cx, cy, inv_f, u, vv,
+                   z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t);
+  };
   double acc[3] = {0, 0, 0};
   if constexpr (kRows) {
     double t[kMaxVisPartials][3];
@@ -461,8 +466,7 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
       for (int c = 0; c <= 2 * window; c += stride) {  // stride-th columns from the first: c % stride == 0
         const int64_t j = jc + c - window;
         if (j < 0 || j >= W) continue;
-        vis_eval_pixel(s, wk, pl, I, REC, RS, k, v * HW + i * W + j, (float)j + 0.5f, py, K, C, f, cx, cy, inv_f, u,
-                       vv, z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t[dss_splat::vis_partial(c, mw)]);
+        eval(i, j, py, t[dss_splat::vis_partial(c, mw)]);
       }
     }
     for (int q = 0; q < nq; ++q)
@@ -479,8 +483,7 @@ __global__ void visibility_kernel(const float* __restrict__ P, const float* __re
           if (c % stride) continue;  // sparse windows visit every stride-th column
           const int64_t j = jc + c - window;
           if (j < 0 || j >= W) continue;
-          vis_eval_pixel(s, wk, pl, I, REC, RS, k, v * HW + i * W + j, (float)j + 0.5f, py, K, C, f, cx, cy, inv_f,
-                         u, vv, z, nk, z_f, X, Y, slope, cutoff, merge, eps, mode, t);
+          eval(i, j, py, t);
         }
       }
       for (int a = 0; a < 3; ++a) acc[a] += t[a];
