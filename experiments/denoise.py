@@ -75,9 +75,14 @@ def resolve_output(cfg: DictConfig, out: Path, default_name: str) -> Path:
 
 
 def _raw_row_count(path: Path) -> int | None:
-    import open3d as o3d
+    """The rows the file declares (a PLY header's vertex count; open3d's count otherwise)."""
+    from dss.pointcloud import read_ply_header
 
     try:
+        if path.suffix.lower() == ".ply":
+            return read_ply_header(path).element("vertex").count
+        import open3d as o3d
+
         return len(o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False).points)
     except Exception:  # load_ply reports the real problem
         return None
