@@ -115,10 +115,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         result["global_step"] = int(trainer.global_step)
         result["epoch"] = int(trainer.current_epoch)
         result["noise_level"] = getattr(datamodule, "noise_level", None)
-        ckpt_cb = next((c for c in callbacks if isinstance(c, ModelCheckpoint)), None)
+        from pix2pix.checkpoint import LastCheckpoint
+
+        ckpt_cb = next((c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor), None)
+        last_cb = next((c for c in callbacks if isinstance(c, LastCheckpoint)), None)
         best = ckpt_cb.best_model_path if ckpt_cb is not None else ""
         result["best_ckpt"] = best or None
-        result["last_ckpt"] = (ckpt_cb.last_model_path or None) if ckpt_cb is not None else None
+        last = (last_cb.last_model_path or last_cb.best_model_path) if last_cb is not None else None
+        if not last and ckpt_cb is not None:
+            last = ckpt_cb.last_model_path
+        result["last_ckpt"] = last or None
         result["best_val"] = None
         if best and cfg.get("validate_best", True):
             val = trainer.validate(model, datamodule=datamodule, ckpt_path=best, verbose=False)

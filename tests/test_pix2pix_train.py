@@ -290,6 +290,67 @@ def test_kill_and_resume_continue_exactly(pairs_root, tmp_path, monkeypatch):
             assert torch.allclose(a["state"][p]["exp_avg"], c["state"][p]["exp_avg"], atol=1e-7)
 
 
+class SigtermAt(L.Callback):
+    """Send this process SIGTERM after (epoch, batch), as a scheduler stopping a job would."""
+
+    def __init__(self, epoch: int, batch: int):
+        self.epoch, self.batch = epoch, batch
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        import os
+        import signal
+
+        if trainer.current_epoch == self.epoch and batch_idx == self.batch:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+def test_last_checkpoint_is_written_every_epoch_without_improvement(pairs_root, tmp_path):
+    """lr 0: validation never improves after the first epoch; last.ckpt still follows every epoch,
+    so a run killed in epoch 3 resumes after epoch 2, not after epoch 1."""
+    kill = [f"+callbacks.kill._target_={KillAt.__module__}.KillAt", "+callbacks.kill.epoch=2",
+            "+callbacks.kill.batch=1"]
+    cfg = compose_train(tiny_overrides(pairs_root, tmp_path / "flat", "trainer.max_epochs=3", "model.lr=0.0", *kill))
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        run(cfg)
+    ckpts = tmp_path / "flat" / "checkpoints"
+    best = torch.load(next(ckpts.glob("best-*.ckpt")), map_location="cpu", weights_only=False)
+    last = torch.load(ckpts / "last.ckpt", map_location="cpu", weights_only=False)
+    assert best["global_step"] > 0 and best["epoch"] == 0  # never improved after epoch 1
+    assert last["global_step"] == 2 * best["global_step"]  # saved after epoch 2 all the same
+
+
+def test_sigterm_saves_the_step_reached_and_resume_continues_there(pairs_root, tmp_path, monkeypatch):
+    """A run stopped by SIGTERM mid-epoch writes last.ckpt at the step it reached; resuming
+    from it starts at that step with the saved optimiser state and ends at the planned step."""
+    from experiments import train as train_app
+
+    base = ["trainer.max_epochs=2"]
+    stop = [f"+callbacks.stop._target_={__name__}.SigtermAt", "+callbacks.stop.epoch=1", "+callbacks.stop.batch=1"]
+    cfg = compose_train(tiny_overrides(pairs_root, tmp_path / "a", *base, *stop, "export_onnx=false"))
+    with pytest.raises(SystemExit):  # Lightning's SIGTERMException
+        run(cfg)
+    last = tmp_path / "a" / "checkpoints" / "last.ckpt"
+    ck = torch.load(last, map_location="cpu", weights_only=False)
+    steps_per_epoch = 8  # 16 pairs / batch 4, a D and a G step each
+    assert ck["global_step"] == steps_per_epoch + 2 * 2  # epoch 1, batches 0 and 1 done
+
+    restored: dict = {}
+
+    class Probe(L.Callback):
+        def on_train_start(self, trainer, pl_module):
+            restored["step"] = trainer.global_step
+            restored["opt"] = _opt_states(trainer)
+
+    orig = train_app.instantiate_callbacks
+    monkeypatch.setattr(train_app, "instantiate_callbacks", lambda c: orig(c) + [Probe()])
+    res = run(compose_train(tiny_overrides(pairs_root, tmp_path / "b", *base, f"ckpt_path={last}",
+                                           "export_onnx=false")))
+    assert restored["step"] == ck["global_step"]
+    for got, saved in zip(restored["opt"], ck["optimizer_states"]):
+        _assert_same_opt_state(got, saved)
+    assert res["global_step"] == 2 * steps_per_epoch
+
+
 def test_run_dir_contents_and_export(trained_run):
     out = Path(trained_run["output_dir"])
     metrics = json.loads((out / "metrics.json").read_text())
