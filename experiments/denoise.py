@@ -41,6 +41,7 @@ from experiments.common import (
     describe_device,
     optimization_report,
     positional_to_override,
+    prepare_kernels,
     resolve_device,
     run_dir,
     save_config,
@@ -532,6 +533,7 @@ def run(cfg: DictConfig) -> dict:
     hint = cfg.get("noise")
     if hint is not None and not (float(hint) > 0):
         raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
+    kernel_build = prepare_kernels(resolve_device(cfg.get("device")))
     cloud_in = cloud  # the input as given: scored and drawn as "noisy input"
     cloud, outlier_report = remove_outliers(cloud, cfg.get("outliers", {}), out,
                                             None if input_report["normals"] == "from file" else int(cfg.normals.k))
@@ -606,7 +608,7 @@ def run(cfg: DictConfig) -> dict:
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},
-        **optimization_report(history, t_start, t_opt),
+        **optimization_report(history, t_start, t_opt, kernel_build),
         "metrics_input": m_in,
         "metrics_output": m_out,
         "chamfer_floor": floor,

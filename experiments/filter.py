@@ -28,6 +28,7 @@ from omegaconf import DictConfig
 from experiments.common import (
     optimization_report,
     positional_to_override,
+    prepare_kernels,
     resolve_device,
     run_dir,
     save_config,
@@ -97,6 +98,7 @@ def run(cfg: DictConfig) -> dict:
     spec = load_render_spec(image_size=[int(cfg.image_size)] * 2) if cfg.get("image_size") else load_render_spec()
     shading = _shading(str(cfg.shading), spec)
     clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(points), int(cfg.seed))
+    kernel_build = prepare_kernels(resolve_device(cfg.get("device")))
     save_config(cfg, out)
     log.info("filtering %s (%d points%s) with %s at %s px, %s shading", input_path, len(points),
              f", +{noise:g} noise" if noise else "", generator.describe(), list(spec.image_size), cfg.shading)
@@ -131,7 +133,7 @@ def run(cfg: DictConfig) -> dict:
         "reference": generator.describe(),
         "shading": str(cfg.shading),
         "render": {"image_size": list(spec.image_size), "spec": spec.to_dict()},
-        **optimization_report(history, t_start, t_opt),
+        **optimization_report(history, t_start, t_opt, kernel_build),
         "change": {"chamfer_to_input_paper_x1e4": moved["chamfer"],
                    "hausdorff_to_input_paper_x1e3": moved["hausdorff"],
                    "normal_change_deg": {"mean": float(angle.mean()), "median": float(angle.median())}},

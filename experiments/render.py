@@ -22,6 +22,7 @@ from dss.render import render, resolve_backend
 from dss.viz import colorize_depth, colorize_normals, image_grid, save_png, to_uint8
 from experiments.common import (
     positional_to_override,
+    prepare_kernels,
     renderer_settings,
     run_dir,
     save_config,
@@ -56,6 +57,8 @@ def run(cfg: DictConfig) -> dict:
     if cfg.normalize:
         points, _, _ = normalize_unit_diagonal(points)
     settings = renderer_settings(cfg.renderer)
+    # a first-use compile (when the C++ backend may be used) is not a render time
+    kernel_build = prepare_kernels() if cfg.backend in ("auto", "cpp") else 0.0
     backend = resolve_backend(cfg.backend)
     cams = make_cameras(cfg, points)
     results, timings = {}, {}
@@ -87,6 +90,7 @@ def run(cfg: DictConfig) -> dict:
         "image_size": list(cams.image_size),
         "backend": backend,
         "render_seconds": timings,
+        "kernel_build_seconds": kernel_build,
         "coverage": coverage,
         "outputs": ["grid.png", "sun.png", "normals.png", "depth.png", "views/"],
     }
