@@ -451,6 +451,14 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
     finally:
         bar.close()
     result.history["device"] = describe_device(dev)
+    # the optimiser undoes blow-ups as they happen; a result that is still far larger than the
+    # input (or not finite) is not one, and is never written out
+    from dss.optimize import OptimizationDiverged
+    from dss.pointcloud import all_finite, bbox_diagonal
+
+    if not all_finite(result.points, result.normals) or bbox_diagonal(result.points) > 2.0:
+        raise OptimizationDiverged(f"the optimisation diverged: the result is not finite or spans "
+                                   f"{bbox_diagonal(result.points):.3g}x the input's bounding box; lower the learning rates")
     out_p = result.points * scale + center
     return out_p, result.normals, result.history, ref, (center, scale, pn), ocfg
 

@@ -620,3 +620,25 @@ def test_first_use_compile_is_left_out_of_the_run_time(case, tmp_path, monkeypat
     assert m["time_s"]["kernel_build"] == pytest.approx(1000.0)
     assert 0 < m["time_s"]["total"] < 1000.0 and m["time_s"]["optimization"] < 1000.0
 
+
+def test_denoise_blowup_fails_and_writes_no_result(case, tmp_path):
+    """optimizer.lr_points=1e6 throws the cloud far away: the optimiser undoes and reports it, and
+    when halving the rates cannot recover, the run fails with a clear message and writes no
+    denoised cloud or metrics."""
+    from dss.optimize import OptimizationDiverged
+    from experiments.denoise import run
+
+    out = tmp_path / "blow"
+    with pytest.raises(OptimizationDiverged, match="diverged and did not recover.*lower the learning rates"):
+        run(compose_cfg("denoise", denoise_overrides(case, out, "optimizer.cycles=1", "optimizer.normal_steps=4",
+                                                     "optimizer.lr_points=1e6", "+optimizer.max_lr_halvings=2")))
+    assert not (out / "denoised.ply").exists() and not (out / "metrics.json").exists()
+    # with room to halve, the run recovers, keeps the input's size and reports the halvings
+    m = run(compose_cfg("denoise", denoise_overrides(case, tmp_path / "ok", "optimizer.cycles=1",
+                                                     "optimizer.normal_steps=4", "optimizer.lr_points=1e6")))
+    from dss.pointcloud import bbox_diagonal, load_ply
+
+    res = load_ply(tmp_path / "ok" / "denoised.ply", compute_normals=False)
+    assert m["lr_halvings"] > 0
+    assert bbox_diagonal(res.points) < 1.5 * bbox_diagonal(torch.from_numpy(case["noisy"]))
+
