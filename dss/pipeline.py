@@ -219,6 +219,11 @@ def local_quadric_residual(points, k: int, queries: int = 2000, seed: int = 0) -
     k = int(min(k, n))
     if k < 10:
         raise ValueError(f"need at least 10 points for a local quadric fit, got {n}")
+    # fitted in units of the bounding-box diagonal, so that the fit's small ridge term means the
+    # same at any scale of the input (a cloud in km or in um); the residual comes back in input units
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    diag = diag if diag > 0 else 1.0
+    p = (p - p.min(0)) / diag
     rng = np.random.default_rng(seed)
     q = rng.choice(n, min(queries, n), replace=False)
     _, idx = cKDTree(p).query(p[q], k=k)
@@ -232,7 +237,7 @@ def local_quadric_residual(points, k: int, queries: int = 2000, seed: int = 0) -
     AtA = np.einsum("qki,qkj->qij", A, A) + 1e-12 * np.eye(6)
     coef = np.linalg.solve(AtA, np.einsum("qki,qk->qi", A, h)[..., None])[..., 0]
     r = h - np.einsum("qki,qi->qk", A, coef)
-    return np.sqrt((r**2).sum(1) / (k - 6))
+    return np.sqrt((r**2).sum(1) / (k - 6)) * diag
 
 
 def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24, k_max: int = 256,
@@ -260,10 +265,12 @@ def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24
         raise ValueError(f"points must be (N, 3), got {p.shape}")
     p = p[np.isfinite(p).all(1)]
     diag = float(np.linalg.norm(p.max(0) - p.min(0))) if len(p) else 0.0
-    if diag <= 0:
+    if not diag > 0:
         raise ValueError("cannot estimate noise of an empty or zero-size point set")
+    # in units of the bounding-box diagonal: the result is a fraction of it at any input scale
+    p = (p - (p.max(0) + p.min(0)) / 2) / diag
     k = int(np.clip(round(patch_fraction * len(p)), k_min, k_max))
-    m = float(np.median(local_quadric_residual(p, k, queries, seed))) / diag
+    m = float(np.median(local_quadric_residual(p, k, queries, seed)))
     xs, ys = zip(*NOISE_CALIBRATION)
     if m <= xs[-1]:
         return float(np.interp(m, xs, ys))

@@ -395,7 +395,11 @@ def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.T
     if len(p) < 3:
         raise PointCloudError(f"cannot estimate normals of {len(p)} points (need at least 3)")
     k = int(min(k, len(p)))
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    # fitted in units of the bounding-box diagonal: open3d's neighbourhood and orientation
+    # tolerances are absolute, and the normals do not depend on the scale
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    unit = (p - p.mean(0)) / (diag if diag > 0 else 1.0)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(unit))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
     if orient == "consistent" and len(p) > k + 1:
         try:

@@ -53,9 +53,11 @@ def run(cfg: DictConfig) -> dict:
     out = run_dir(cfg)
     save_config(cfg, out)
     cloud = load_ply(cfg.input)
+    # Rendered in units of the bounding-box diagonal whatever ``normalize`` says: the renderer's
+    # near plane and size floors are absolute lengths, so a cloud 1e-6 across would render
+    # empty in its own units. The cameras frame the cloud, so the images do not depend on it.
     points, normals = cloud.points, cloud.normals
-    if cfg.normalize:
-        points, _, _ = normalize_unit_diagonal(points)
+    points, center, scale = normalize_unit_diagonal(points)
     settings = renderer_settings(cfg.renderer)
     # a first-use compile (when the C++ backend may be used) is not a render time
     kernel_build = prepare_kernels() if cfg.backend in ("auto", "cpp") else 0.0
@@ -88,6 +90,8 @@ def run(cfg: DictConfig) -> dict:
         "points": len(cloud),
         "views": len(cams),
         "image_size": list(cams.image_size),
+        # camera distance from the cloud's centre: in the input's units unless normalize
+        "camera_distance": float(cams.centers[0].norm()) * (1.0 if cfg.normalize else scale),
         "backend": backend,
         "render_seconds": timings,
         "kernel_build_seconds": kernel_build,

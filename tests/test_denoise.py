@@ -642,3 +642,24 @@ def test_denoise_blowup_fails_and_writes_no_result(case, tmp_path):
     assert m["lr_halvings"] > 0
     assert bbox_diagonal(res.points) < 1.5 * bbox_diagonal(torch.from_numpy(case["noisy"]))
 
+
+def test_denoise_is_scale_free(case, tmp_path):
+    """The same cloud scaled by 1e-6: the same noise estimate, the same result in the input's
+    units (Chamfer relative to the squared diagonal)."""
+    from dss.pointcloud import load_ply
+    from experiments.denoise import run
+
+    s = 1e-6
+    write_ply(tmp_path / "noisy_small.ply", case["noisy"] * s)
+    write_ply(tmp_path / "clean_small.ply", case["clean"] * s)
+    extra = ("optimizer.cycles=1", "optimizer.normal_steps=3", "metrics.protocols=[paper]")
+    m1 = run(compose_cfg("denoise", [*denoise_overrides(case, tmp_path / "unit", *extra), "mesh=null"]))
+    ms = run(compose_cfg("denoise", [*denoise_overrides(case, tmp_path / "small", *extra), "mesh=null",
+                                     f"input={tmp_path / 'noisy_small.ply'}", f"clean={tmp_path / 'clean_small.ply'}"]))
+    assert ms["noise"]["estimated"] == pytest.approx(m1["noise"]["estimated"], rel=1e-3)
+    p1 = load_ply(tmp_path / "unit" / "denoised.ply", compute_normals=False).points.numpy()
+    ps = load_ply(tmp_path / "small" / "denoised.ply", compute_normals=False).points.numpy()
+    assert np.abs(ps).max() < 1e-5  # in the input's units
+    assert np.abs(ps / s - p1).max() < 1e-3 * np.abs(p1).max()  # the same points
+    assert ms["summary"]["output"]["paper"]["chamfer"] == pytest.approx(m1["summary"]["output"]["paper"]["chamfer"],
+                                                                        rel=0.02)
