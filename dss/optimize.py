@@ -223,6 +223,27 @@ class OptimizerConfig:
             raise ValueError(f"final_projection_iterations must be >= 1, got {self.final_projection_iterations}")
 
 
+    def min_points(self) -> int:
+        """The fewest points this configuration can optimise: more than the largest neighbour
+        list it asks for (regularisers: reg_k x reg_dilation; final projection:
+        final_projection_k x reg_dilation; normal refresh: normal_refresh_k)."""
+        need = 3
+        if self.projection_weight > 0 or self.repulsion_weight > 0:
+            need = max(need, self.reg_k * self.reg_dilation + 1)
+        if self.final_projection_k > 0:
+            need = max(need, self.final_projection_k * self.reg_dilation + 1)
+        if self.normal_refresh != "none":
+            need = max(need, self.normal_refresh_k + 1)
+        return need
+
+    def check_points(self, n: int, what: str = "the cloud") -> None:
+        """Refuse ``n`` points before any work when they are too few (:meth:`min_points`)."""
+        if n < self.min_points():
+            raise ValueError(f"{what} has {n} points, too few for this optimisation (at least {self.min_points()}: "
+                             f"reg_k {self.reg_k} x reg_dilation {self.reg_dilation}, final_projection_k "
+                             f"{self.final_projection_k}, normal_refresh_k {self.normal_refresh_k})")
+
+
 @dataclass
 class OptimizationResult:
     points: torch.Tensor
@@ -275,6 +296,7 @@ class MultiViewOptimizer:
                  callback: Callable[[int, dict], None] | None = None, sampler: SphereViewSampler | None = None,
                  image_size: int = 256):
         self.cfg = config or OptimizerConfig()
+        self.cfg.check_points(points.shape[0])
         self.settings = settings or RenderSettings()
         self.points = points.detach().clone().float().requires_grad_(True)
         self.normals = torch.nn.functional.normalize(normals.detach().clone().float(), dim=1).requires_grad_(True)

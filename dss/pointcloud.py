@@ -355,8 +355,9 @@ def load_ply(
     return PointCloud(points, normals, colors)
 
 
-def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False) -> Path:
-    """Write ``cloud`` (points, normals and colours when present) atomically as PLY."""
+def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False, exclusive: bool = False) -> Path:
+    """Write ``cloud`` (points, normals and colours when present) atomically as PLY; returns the
+    path written. ``exclusive``: never replace an existing file (see :class:`dss.io_utils.atomic_path`)."""
     import open3d as o3d
 
     if len(cloud) == 0:
@@ -367,11 +368,11 @@ def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False) ->
         pcd.normals = o3d.utility.Vector3dVector(cloud.normals.detach().cpu().double().numpy())
     if cloud.colors is not None:
         pcd.colors = o3d.utility.Vector3dVector(cloud.colors.detach().cpu().double().clamp(0, 1).numpy())
-    path = Path(path)
-    with atomic_path(path) as tmp:
+    writer = atomic_path(Path(path), exclusive=exclusive)
+    with writer as tmp:
         if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=ascii):
             raise OSError(f"{path}: open3d could not write the file")
-    return path
+    return writer.path
 
 
 def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.Tensor:

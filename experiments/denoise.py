@@ -38,11 +38,17 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.common import (
+    OutputExistsError,
+    claim_output,
+    claim_run_dir,
     describe_device,
+    guarded,
     optimization_report,
     positional_to_override,
     prepare_kernels,
+    release_claims,
     resolve_device,
+    run_app,
     run_dir,
     save_config,
     save_metrics,
@@ -52,27 +58,27 @@ from experiments.wandb_log import log_run
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run", "main", "EXAMPLE_DIR", "OutputExistsError", "load_input", "resolve_output"]
+__all__ = ["run", "main", "EXAMPLE_DIR", "ARTEFACTS", "OutputExistsError", "load_input", "resolve_output"]
 
 EXAMPLE_DIR = Path(__file__).resolve().parent / "assets" / "example"
 EXAMPLE_FILES = {"input": "noisy_1pct.ply", "clean": "clean.ply", "mesh": "mesh.ply"}
 
 
-class OutputExistsError(FileExistsError):
-    """The output path exists and ``overwrite`` is false."""
+#: what a run writes into its run directory (an earlier run's are refused or, with overwrite,
+#: removed first: experiments.common.claim_run_dir)
+ARTEFACTS = ("denoised.ply", "outliers.ply", "before_after.png", "references.png", "loss.png", "loss.json",
+             "metrics.json", "config.yaml")
 
 
 # ------------------------------------------------------------------------------ input / output
 def resolve_output(cfg: DictConfig, out: Path, default_name: str) -> Path:
-    """The output PLY path; refuses an existing file unless ``cfg.overwrite``."""
+    """The output PLY path, claimed for this run (experiments.common.claim_output): its folder
+    must be writable, no other running process may hold it, and an existing file is refused
+    unless ``cfg.overwrite``."""
     path = Path(cfg.output) if cfg.get("output") else out / default_name
     if path.suffix.lower() != ".ply":
         raise ValueError(f"output {path}: must be a .ply file")
-    if path.exists() and not cfg.get("overwrite", False):
-        raise OutputExistsError(f"output {path} already exists; refusing to replace it (pass overwrite=true)")
-    if path.is_dir():
-        raise IsADirectoryError(f"output {path} is a directory")
-    return path
+    return claim_output(path, bool(cfg.get("overwrite", False)))
 
 
 def _raw_row_count(path: Path) -> int | None:
@@ -126,41 +132,41 @@ def outlier_params(node) -> dict:
     return {k: node[k] for k in OUTLIER_KEYS if node.get(k) is not None}
 
 
-def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tuple[Any, dict]:
-    """(inlier cloud, report): ``node`` is conf/denoise.yaml's ``outliers`` block. The removed
-    points are written to ``out/outliers.ply`` (nothing the user gave is lost) and counted.
+def remove_outliers(cloud, node, normals_k: int | None = None) -> tuple[Any, dict, Any]:
+    """(inlier cloud, report, removed cloud or None): ``node`` is conf/denoise.yaml's ``outliers``
+    block. The caller writes the removed points to ``outliers.ply`` with the run's results
+    (nothing the user gave is lost, and nothing is written before the run can succeed).
     ``normals_k``: the normals were estimated (not read), so re-estimate them without the outliers."""
-    from dss.pointcloud import (
-        PointCloud,
-        PointCloudError,
-        estimate_normals,
-        find_outliers,
-        save_ply,
-    )
+    from dss.pointcloud import PointCloudError, estimate_normals, find_outliers
 
     params = outlier_params(node)
     if not node.get("remove", True):
-        return cloud, {"removed": 0, "enabled": False, **params}
+        return cloud, {"removed": 0, "enabled": False, **params}, None
     t0 = time.perf_counter()
     bad = find_outliers(cloud.points, **params)
     n_bad = int(bad.sum())
     report = {"enabled": True, "removed": n_bad, "fraction": n_bad / max(1, len(cloud)), **params,
               "seconds": time.perf_counter() - t0, "file": None}
     if n_bad == 0:
-        return cloud, report
+        return cloud, report, None
     kept = cloud.select(~bad)
     if len(kept) < 16:
         raise PointCloudError(f"outlier removal would leave {len(kept)} of {len(cloud)} points; "
                               "set outliers.remove=false")
-    report["file"] = str(save_ply(out / "outliers.ply", PointCloud(cloud.points[bad], cloud.normals[bad])))
     if normals_k:
         kept = kept.with_normals(estimate_normals(kept.points, k=normals_k))
     log.log(logging.WARNING if report["fraction"] > 0.1 else logging.INFO,
-            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; written to %s)%s",
-            n_bad, len(cloud), 100 * report["fraction"], report["file"],
+            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; written to outliers.ply)%s",
+            n_bad, len(cloud), 100 * report["fraction"],
             ": a scan of varying density loses its sparse parts, set outliers.remove=false to keep them"
             if report["fraction"] > 0.1 else "")
-    return kept, report
+    return kept, report, cloud.select(bad)
+
+
+def _explicit_model(cfg: DictConfig) -> bool:
+    """Whether the reference names its model file (checked before any work) rather than ``auto``."""
+    node = cfg.reference
+    return "model" in node and node.model not in (None, "auto")
 
 
 def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0):
@@ -532,22 +538,26 @@ def run(cfg: DictConfig) -> dict:
         torch.set_num_threads(int(cfg.threads))
     out = run_dir(cfg)
     input_path, clean_path, mesh_path, is_example = _example_defaults(cfg)
-    # Everything that can be refused is checked before any work or any output file.
+    # Everything that can be refused is checked before any work or any output file: settings,
+    # the outputs (claimed: writable, not another run's), the input, the model.
     check_wandb(cfg.get("wandb"))
-    resolve_device(cfg.get("device"))
-    output = resolve_output(cfg, out, "denoised.ply")
-    cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
-                                     bool(cfg.normals.recompute))
+    dev = resolve_device(cfg.get("device"))
     hint = cfg.get("noise")
     if hint is not None and not (float(hint) > 0):
         raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
-    kernel_build = prepare_kernels(resolve_device(cfg.get("device")))
+    claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
+    output = resolve_output(cfg, out, "denoised.ply")
+    cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
+                                     bool(cfg.normals.recompute))
+    generator, model_note = make_reference(cfg, None) if _explicit_model(cfg) else (None, None)
+    kernel_build = prepare_kernels(dev)
     cloud_in = cloud  # the input as given: scored and drawn as "noisy input"
-    cloud, outlier_report = remove_outliers(cloud, cfg.get("outliers", {}), out,
-                                            None if input_report["normals"] == "from file" else int(cfg.normals.k))
+    cloud, outlier_report, removed = remove_outliers(
+        cloud, cfg.get("outliers", {}), None if input_report["normals"] == "from file" else int(cfg.normals.k))
     estimated = estimate_noise_level(cloud.points)
     noise = float(hint) if hint is not None else estimated
-    generator, model_note = make_reference(cfg, noise)
+    if generator is None:
+        generator, model_note = make_reference(cfg, noise)
     if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
@@ -563,6 +573,8 @@ def run(cfg: DictConfig) -> dict:
     if cfg.get("image_size") and list(spec.image_size) != [int(cfg.image_size)] * 2:
         log.warning("image_size=%s ignored: the model fixes the render size to %s", cfg.image_size, list(spec.image_size))
     shading, shading_name = _shading_for(generator, spec, str(cfg.get("filter_shading", "sun")))
+    # settings resolved: the point count they need is known before any optimisation
+    optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(cloud), f"input {input_path}")
     clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
     save_config(cfg, out)
     log.info("denoising %s (%d points, noise %s %.4g) with %s at %s px", input_path, len(cloud),
@@ -574,7 +586,10 @@ def run(cfg: DictConfig) -> dict:
     t_opt = time.perf_counter() - t0
     nrm_opt = nrm
     nrm = output_normals(pts, nrm_opt, str(cfg.normals.get("output", "pca")), int(cfg.normals.k))
-    save_ply(output, PointCloud(pts, nrm))
+    # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
+    output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
+    if removed is not None:
+        outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
 
     protocols = list(cfg.metrics.protocols)
     m_in = score(cloud_in.points.numpy(), clean, mesh, protocols)
@@ -627,6 +642,7 @@ def run(cfg: DictConfig) -> dict:
     save_metrics(metrics, out)
     _log_summary(metrics)
     log_run(cfg, out, metrics, history, figures)
+    release_claims()
     return metrics
 
 
@@ -645,6 +661,7 @@ def _log_summary(metrics: dict) -> None:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="denoise")
+@guarded
 def _main(cfg: DictConfig) -> None:
     m = run(cfg)
     s = m["summary"]
@@ -657,7 +674,7 @@ def _main(cfg: DictConfig) -> None:
 
 def main() -> None:
     positional_to_override("input")
-    _main()
+    run_app(_main)
 
 
 if __name__ == "__main__":
