@@ -251,3 +251,20 @@ def test_expected_failures_print_one_line_and_exit_2(sphere_ply, tmp_path):
     proc = _cli("experiments.render", str(cut), f"hydra.run.dir={tmp_path / 'f'}", env={**_env(), "DSS_DEBUG": "1"})
     assert proc.returncode != 0 and "Traceback" in proc.stderr and "truncated" in proc.stderr
 
+
+# ------------------------------------------------------------------------------- scale-out
+def test_joblib_launcher_runs_a_multirun_in_parallel_jobs(sphere_ply, tmp_path):
+    """`-m hydra/launcher=joblib` (the launcher conf/prep.yaml names for parallel jobs): two jobs in
+    worker processes, each with its own run directory and results."""
+    import json
+
+    import yaml
+
+    sweep = tmp_path / "sweep"
+    proc = _cli("experiments.render", "-m", f"input={sphere_ply}", "views=1,2", "image_size=32",
+                "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    views = sorted(json.loads((sweep / str(j) / "metrics.json").read_text())["views"] for j in (0, 1))
+    assert views == [1, 2]
+    launcher = yaml.safe_load((sweep / "multirun.yaml").read_text())["hydra"]["launcher"]["_target_"]
+    assert "JoblibLauncher" in launcher

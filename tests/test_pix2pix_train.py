@@ -23,6 +23,7 @@ try:
     from tests.pix2pix_fixtures import (  # noqa: F401
         CONF_DIR,
         KillAt,
+        RankDump,
         compose_train,
         pairs_root,
         subprocess_env,
@@ -34,6 +35,7 @@ except ImportError:
     from pix2pix_fixtures import (  # noqa: F401
         CONF_DIR,
         KillAt,
+        RankDump,
         compose_train,
         pairs_root,
         subprocess_env,
@@ -427,3 +429,50 @@ def test_bench_train_times_every_kind_of_preset(tmp_path):
     rows = json.loads(out.read_text())["results"]
     assert [r["preset"] for r in rows] == ["tiny", "paper"] and res["results"] == rows
     assert all(r["images_per_s"] and r["images_per_s"] > 0 and r["timed_batches"] == 1 for r in rows)
+
+
+# ---- scale-out -----------------------------------------------------------------------------------
+def _ddp_cmd(pairs_root, out: Path, dump: Path, *extra: str) -> list[str]:
+    """dss-train under conf/trainer/ddp.yaml, on 2 CPU processes (gloo) instead of 4 GPUs."""
+    return [sys.executable, "-m", "experiments.train", "trainer=ddp", "trainer.accelerator=cpu",
+            "trainer.devices=2", "trainer.sync_batchnorm=false", "model=tiny", "logger=none",
+            f"data.root={pairs_root}", "data.noise_level=0.01", "data.batch_size=4", "data.val_batch_size=4",
+            "data.num_workers=0", "data.persistent_workers=false", "trainer.num_sanity_val_steps=0",
+            "callbacks.progress_bar=null", "+trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
+            "torch_threads=1", "export_onnx=false", "validate_best=false",
+            f"+callbacks.dump._target_={RankDump.__module__}.RankDump", f"+callbacks.dump.dirpath={dump}",
+            f"hydra.run.dir={out}", *extra]
+
+
+def _ranks(dump: Path) -> list[dict]:
+    return [torch.load(dump / f"rank{r}.pt", map_location="cpu", weights_only=False) for r in (0, 1)]
+
+
+def test_ddp_on_two_cpu_processes_agrees_and_resumes(pairs_root, tmp_path):
+    """Lightning DDP (gloo) with 2 processes: both ranks end with the same weights and step, and
+    the checkpoint resumes under DDP to the planned step with the ranks still in agreement."""
+    import os
+
+    tests_dir = str(Path(__file__).resolve().parent)
+    env = {**subprocess_env(), "MASTER_PORT": str(29500 + (abs(hash(str(tmp_path))) % 2000)),
+           "PYTHONPATH": os.pathsep.join(p for p in (tests_dir, os.environ.get("PYTHONPATH")) if p)}
+    out, dump = tmp_path / "ddp", tmp_path / "dump1"
+    proc = subprocess.run(_ddp_cmd(pairs_root, out, dump, "trainer.max_epochs=1"), capture_output=True, text=True,
+                          env=env, timeout=400, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r0, r1 = _ranks(dump)
+    assert (r0["world_size"], r1["world_size"]) == (2, 2) and r0["global_step"] == r1["global_step"] > 0
+    for k, v in r0["state_dict"].items():
+        assert torch.equal(v, r1["state_dict"][k]), k
+    steps = r0["global_step"]
+    last = out / "checkpoints" / "last.ckpt"
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == steps
+
+    dump2 = tmp_path / "dump2"
+    proc = subprocess.run(_ddp_cmd(pairs_root, tmp_path / "ddp2", dump2, "trainer.max_epochs=2", f"ckpt_path={last}"),
+                          capture_output=True, text=True, env=env, timeout=400, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r0, r1 = _ranks(dump2)
+    assert r0["global_step"] == r1["global_step"] == 2 * steps
+    for k, v in r0["state_dict"].items():
+        assert torch.equal(v, r1["state_dict"][k]), k
