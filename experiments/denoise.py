@@ -156,7 +156,7 @@ def remove_outliers(cloud, node, normals_k: int | None = None) -> tuple[Any, dic
     if normals_k:
         kept = kept.with_normals(estimate_normals(kept.points, k=normals_k))
     log.log(logging.WARNING if report["fraction"] > 0.1 else logging.INFO,
-            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; written to outliers.ply)%s",
+            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; kept in outliers.ply with the results)%s",
             n_bad, len(cloud), 100 * report["fraction"],
             ": a scan of varying density loses its sparse parts, set outliers.remove=false to keep them"
             if report["fraction"] > 0.1 else "")

@@ -67,7 +67,7 @@ def run(cfg: DictConfig) -> dict:
     # near plane and size floors are absolute lengths, so a cloud 1e-6 across would render
     # empty in its own units. The cameras frame the cloud, so the images do not depend on it.
     points, normals = cloud.points, cloud.normals
-    points, center, scale = normalize_unit_diagonal(points)
+    points, _, scale = normalize_unit_diagonal(points)
     settings = renderer_settings(cfg.renderer)
     # a first-use compile (when the C++ backend may be used) is not a render time
     kernel_build = prepare_kernels() if cfg.backend in ("auto", "cpp") else 0.0
