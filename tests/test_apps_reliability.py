@@ -55,6 +55,24 @@ def test_render_of_a_tiny_cloud_in_its_own_units_matches_the_unit_scale_one(sphe
         (c.points.max(0).values - c.points.min(0).values).numpy())) * 1e-6, rel=1e-3)
 
 
+# ------------------------------------------------------------------------------- blow-up
+def test_deform_blowup_fails_without_writing_a_result(sphere_ply, tmp_path):
+    """dss-deform with lr_points 1e6: steps that fling points away are undone; when halving the
+    rates cannot recover (here: at most 2 halvings) the run fails and writes no final.ply or
+    metrics.json."""
+    from dss.optimize import OptimizationDiverged
+    from experiments.deform import run
+
+    out = tmp_path / "deform"
+    cfg = compose_cfg("deform", [f"target.path={sphere_ply}", "start.points=300", "image_size=32",
+                                 "optimizer.cycles=1", "optimizer.point_steps=4", "optimizer.normal_steps=1",
+                                 "snapshot_steps=[0]", "chamfer_every=0", "progress=false", "optimizer.lr_points=1e6",
+                                 "+optimizer.max_lr_halvings=2", f"+out_dir={out}"])
+    with pytest.raises(OptimizationDiverged, match="grew the cloud.*lower the learning rates"):
+        run(cfg)
+    assert not (out / "final.ply").exists() and not (out / "metrics.json").exists()
+
+
 # ------------------------------------------------------------------------------- claimed outputs
 REPO = Path(__file__).resolve().parents[1]
 
