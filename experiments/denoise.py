@@ -442,11 +442,13 @@ def fusion_config(cfg: DictConfig, shading):
 
 def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor, generator, spec, desc: str,
                    shading=None, noise: float | None = None, clean: np.ndarray | None = None, mesh=None,
-                   fusion_callback=None):
+                   callback=None, fusion_callback=None):
     """Normalise, refine with ``generator`` under ``spec`` (cameras, renderer settings; shading:
     the spec's channel unless given), then the plane fusion (``cfg.fusion``), de-normalise.
     ``clean`` (M, 3), input units: the ground truth an oracle generator renders (with the
-    normals of ``mesh`` (vertices, faces), input units, when given).
+    normals of ``mesh`` (vertices, faces), input units, when given). ``callback`` and
+    ``fusion_callback``: the optimiser's and the fusion's per-step / per-pass hooks (in the
+    normalised frame; :mod:`experiments.image_study` records its numbers with them).
 
     Returns (points, normals in input units, history, reference renderer, normalisation
     (centre, scale, normalised input points), optimiser config)."""
@@ -485,7 +487,7 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
                                             shading=shading, sampler=sampler, backend=spec.backend, progress=update,
                                             device=dev, keep_background=getattr(generator, "keep_background", True),
                                             fusion=fcfg, fusion_cameras=fusion_cams, noise=noise,
-                                            fusion_callback=fusion_callback)
+                                            callback=callback, fusion_callback=fusion_callback)
     finally:
         bar.close()
     result.history["device"] = describe_device(dev)
