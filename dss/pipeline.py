@@ -168,9 +168,9 @@ def refine_with_reference(
         device: where the optimisation runs (e.g. ``"cuda"``: renders, regularisers and kNN on
             the GPU); None: the points' device. ``image_fn`` gets images on that device. The
             results and the renderer's ``last`` come back on the points' device.
-        fusion: after the cycles, :func:`dss.fusion.fuse_planes` with these settings moves the
-            points onto the surface the references show (needs ``shading="planes"``), before
-            the configured final projection of outliers. None: no fusion (the paper).
+        fusion: after the cycles and the configured final projection of outliers,
+            :func:`dss.fusion.fuse_planes` with these settings moves the points onto the
+            surface the references show (needs ``shading="planes"``). None: no fusion (the paper).
         fusion_cameras: ``() -> Cameras`` with ``fusion.views`` fresh views per call (required
             with ``fusion``).
         noise: the cloud's noise level (std in bbox diagonals; the fusion's depth window).
@@ -203,28 +203,31 @@ def refine_with_reference(
     log.info("refining %d points: %d cycles x (%d normal + %d point steps), %d views per step",
              len(points), config.cycles, config.normal_steps, config.point_steps, config.views)
     result = opt.run(progress=progress, final_projection=False)
+    result.points = opt.project_outliers(result.points)
     if fusion is not None:
+        # after the outlier projection: the outliers it moved are then within the fusion's
+        # depth window, and the fusion has the last word on every point it can see
         def plane_reference(cams: Cameras):
             planes = ref(cams)
             return planes, planes.abs().amax(-1) > 0  # the background plane is 0
 
         fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
                             fusion, float(noise), callback=fusion_callback)
-        result.points, result.normals = fused.points, fused.normals
-        result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
-                                    "consistency_mean": float(fused.consistency.mean()),
-                                    "image_normals": float(fused.image_normal_mask.float().mean())}
-    projected = opt.project_outliers(result.points)
-    if fusion is not None:  # an outlier moved by the final projection takes the PCA normal there
-        moved = (projected - result.points).norm(dim=1) > 0
-        if bool(moved.any()):
+        # and once more after it: on the fused (cleaner) surface the outlier test is tighter
+        projected = opt.project_outliers(fused.points)
+        moved = (projected - fused.points).norm(dim=1) > 0
+        normals = fused.normals
+        if bool(moved.any()):  # a moved outlier takes the PCA normal at its new place
             from .pointcloud import estimate_normals
 
             pca = estimate_normals(projected, k=fusion.normal_k, orient="none").to(projected)
-            pca = torch.where((pca * result.normals).sum(1, keepdim=True) < 0, -pca, pca)
-            result.normals = torch.where(moved[:, None], pca, result.normals)
-        result.history["fusion"]["final_projection_moved"] = int(moved.sum())
-    result.points = projected
+            pca = torch.where((pca * normals).sum(1, keepdim=True) < 0, -pca, pca)
+            normals = torch.where(moved[:, None], pca, normals)
+        result.points, result.normals = projected, normals
+        result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
+                                    "consistency_mean": float(fused.consistency.mean()),
+                                    "image_normals": float(fused.image_normal_mask.float().mean()),
+                                    "final_projection_moved": int(moved.sum())}
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
     result.history["device"] = str(dev)
