@@ -19,7 +19,7 @@ Renderer = Callable[[np.ndarray, np.ndarray, Sequence[View], RenderSpec], tuple[
 
 
 def dss_renderer(points: np.ndarray, normals: np.ndarray, views: Sequence[View], spec: RenderSpec):
-    """Render with :func:`dss.render.render` and a :class:`dss.shading.PointLight`.
+    """Render with :func:`dss.render.render` in the spec's channel (its point light, or planes).
 
     All views are rendered in one batch when they share the light position (the usual case),
     otherwise one view at a time with its own light.
@@ -40,7 +40,7 @@ def dss_renderer(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
     with torch.no_grad():
         for light, idx in groups.items():
             cams = spec.cameras([views[i] for i in idx])
-            out = render(pts, nrm, cams, settings, shading=spec.point_light(light), backend=spec.backend)
+            out = render(pts, nrm, cams, settings, shading=spec.shader(light), backend=spec.backend)
             images[idx] = out.images.numpy()
             mask[idx] = out.mask.numpy()
     return images, mask

@@ -5,6 +5,10 @@ render with exactly the same camera model, light and splatting settings; they bo
 :class:`RenderSpec` from the same YAML block (:func:`load_render_spec` or the Hydra ``render``
 group), and the block is copied verbatim into each dataset's manifest (``manifest["render"]``).
 
+Two channels: ``point`` (diffuse shading under one point light fixed to the camera, the paper's
+training renders) and ``planes`` (every pixel holds the camera-space plane of the surface it
+shows, :func:`dss.shading.plane_coefficients`: depth and normal; ``conf/render/planes.yaml``).
+
 Units: lengths are in bounding-box diagonals (clouds are normalised to a unit bbox diagonal
 centred at the origin before rendering). Camera space: x right, y down, z forward.
 """
@@ -19,7 +23,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["RenderSpec", "LightSpec", "View", "RenderSpecError", "load_render_spec", "default_spec_path"]
+__all__ = ["RenderSpec", "LightSpec", "View", "RenderSpecError", "load_render_spec", "default_spec_path",
+           "SPEC_SHADINGS", "spec_path"]
+
+#: the render channels a spec can have (the denoiser's input and output)
+SPEC_SHADINGS = ("point", "planes")
 
 _RENDERER_KEYS = ("K", "cutoff", "merge_threshold", "merge_fraction", "sigma", "sigma_k", "sigma_scale",
                   "filter_variance", "backface_culling", "znear", "background")
@@ -31,9 +39,18 @@ class RenderSpecError(ValueError):
 
 def default_spec_path() -> Path:
     """``conf/render/pairs.yaml`` of the installed project."""
+    return spec_path("pairs")
+
+
+def spec_path(name: str) -> Path:
+    """``conf/render/<name>.yaml`` of the installed project (``pairs``: the point light,
+    ``planes``: the planes channel)."""
     import conf
 
-    return Path(conf.__file__).parent / "render" / "pairs.yaml"
+    path = Path(conf.__file__).parent / "render" / f"{name}.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"render spec {path} not found (have {sorted(q.stem for q in path.parent.glob('*.yaml'))})")
+    return path
 
 
 @dataclass(frozen=True)
@@ -134,8 +151,8 @@ class RenderSpec:
         if not 0 <= upj <= 180:
             raise err("up_jitter_deg", f"must be in [0, 180], got {upj}")
         shading = str(cfg.get("shading", "point"))
-        if shading != "point":
-            raise err("shading", f"the denoiser's renders use 'point' (a point light), got {shading!r}")
+        if shading not in SPEC_SHADINGS:
+            raise err("shading", f"must be one of {list(SPEC_SHADINGS)} (the denoiser's render channel), got {shading!r}")
         lc = dict(cfg.get("light", {}) or {})
         bad = set(lc) - {"type", "space", "position", "jitter", "intensity", "ambient"}
         if bad:
@@ -179,6 +196,15 @@ class RenderSpec:
         if isinstance(kw.get("background"), list | tuple):
             kw["background"] = tuple(float(b) for b in kw["background"])
         return RenderSettings(**kw)
+
+    def shader(self, light_position: Sequence[float] | None = None):
+        """The ``shading`` argument of :func:`dss.render.render` for this spec's channel: its point
+        light (at ``light_position``, camera space, when given) or ``"planes"``."""
+        return "planes" if self.shading == "planes" else self.point_light(light_position)
+
+    def describe_shading(self) -> str:
+        """A short name of the channel for reports (``point light [x, y, z]`` or ``planes``)."""
+        return "planes" if self.shading == "planes" else "point light " + str(list(self.light.position))
 
     def point_light(self, position: Sequence[float] | None = None):
         """A :class:`dss.shading.PointLight` at ``position`` (camera space; default: the spec's)."""

@@ -343,6 +343,21 @@ def point_to_mesh_sq(
     return _refine_point_to_triangles(points, d2, tv, min_triangle_area)
 
 
+def mesh_normals_at(points: Any, mesh: Any) -> np.ndarray:
+    """Unit normal (K, 3) float64 of the mesh triangle closest to each point (open3d
+    RaycastingScene), with the sign of the triangle's winding."""
+    import open3d as o3d
+
+    p = as_points(points)
+    vertices, faces = as_mesh(mesh)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    tri = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["primitive_ids"].numpy().astype(np.int64)
+    tv = vertices[faces[tri]]
+    fn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    return fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+
+
 def normal_error_deg(points: Any, normals: Any, mesh: Any) -> dict:
     """Unoriented angle (degrees) between each normal and the normal of the mesh triangle
     closest to its point (open3d RaycastingScene): ``{"mean", "median", "p90"}``.
@@ -352,19 +367,12 @@ def normal_error_deg(points: Any, normals: Any, mesh: Any) -> dict:
         mesh: (vertices, faces) or anything :func:`as_mesh` takes.
     Unoriented (|cos|) because point normals from PCA carry no sign of their own.
     """
-    import open3d as o3d
-
     p = as_points(points)
     n = as_points(normals, "normals")
     if n.shape != p.shape:
         raise ValueError(f"normals {n.shape} must match points {p.shape}")
-    vertices, faces = as_mesh(mesh)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    tri = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["primitive_ids"].numpy().astype(np.int64)
-    tv = vertices[faces[tri]]
-    fn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-    cos = np.abs((fn * n).sum(1)) / np.maximum(np.linalg.norm(fn, axis=1) * np.linalg.norm(n, axis=1), 1e-30)
+    fn = mesh_normals_at(p, mesh)
+    cos = np.abs((fn * n).sum(1)) / np.maximum(np.linalg.norm(n, axis=1), 1e-30)
     ang = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
     return {"mean": float(ang.mean()), "median": float(np.median(ang)), "p90": float(np.percentile(ang, 90))}
 

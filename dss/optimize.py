@@ -581,19 +581,19 @@ class MultiViewOptimizer:
     def total_steps(self) -> int:
         return (self.cfg.cycles + self.cfg.error_aware_cycles) * len(self._cycle_plan())
 
-    def run(self, progress: Callable[[int, float], None] | None = None) -> OptimizationResult:
-        """Run all cycles; ``progress(step, loss)`` is called after each step (progress bars)."""
+    def run(self, progress: Callable[[int, float], None] | None = None,
+            final_projection: bool = True) -> OptimizationResult:
+        """Run all cycles; ``progress(step, loss)`` is called after each step (progress bars).
+        ``final_projection=False`` leaves :meth:`project_outliers` to the caller (a stage that
+        runs after the cycles, such as :func:`dss.fusion.fuse_planes`, comes before it)."""
         c = self.cfg
         t0 = time.perf_counter()
         gen = torch.Generator().manual_seed(c.seed + 1)
         with frozen_gc():  # see dss/gc_pause.py: full collections cost ~150 ms each otherwise
             step = self._run_cycles(progress, gen, t0)
-        if c.final_projection_k > 0:
+        if final_projection:
             with torch.no_grad():
-                self.points.copy_(project_to_neighbour_planes(
-                    self.points, c.final_projection_k, c.reg_dilation,
-                    threshold=c.final_projection_threshold, local_ratio=c.final_projection_local_ratio,
-                    iterations=c.final_projection_iterations))
+                self.points.copy_(self.project_outliers(self.points.detach()))
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
         if self.history["lr_halvings"]:
@@ -657,6 +657,19 @@ class MultiViewOptimizer:
                 if progress is not None:
                     progress(step, loss)
         return step
+
+    def project_outliers(self, points: torch.Tensor) -> torch.Tensor:
+        """The configured final projection (``final_projection_k`` > 0) of ``points`` (N, 3):
+        outliers onto their inliers' planes (:func:`dss.regularizers.project_to_neighbour_planes`);
+        ``points`` unchanged when it is off."""
+        c = self.cfg
+        if c.final_projection_k <= 0:
+            return points
+        with torch.no_grad():
+            return project_to_neighbour_planes(points, c.final_projection_k, c.reg_dilation,
+                                               threshold=c.final_projection_threshold,
+                                               local_ratio=c.final_projection_local_ratio,
+                                               iterations=c.final_projection_iterations)
 
     def _error_aware(self, cams: Cameras, gen: torch.Generator) -> Cameras:
         with torch.no_grad():

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .cameras import Cameras
+from .fusion import FusionConfig, fuse_planes
 from .optimize import MultiViewOptimizer, OptimizationResult, OptimizerConfig
 from .pointcloud import all_finite
 from .render import RenderSettings, render
@@ -143,6 +144,10 @@ def refine_with_reference(
     callback: Callable[[int, dict], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
     device: torch.device | str | None = None,
+    fusion: FusionConfig | None = None,
+    fusion_cameras: Callable[[], Cameras] | None = None,
+    noise: float | None = None,
+    fusion_callback: Callable[[int, dict], None] | None = None,
 ) -> tuple[OptimizationResult, ReferenceRenderer]:
     """Move points and normals so that their renders match ``image_fn`` of the input's renders.
 
@@ -163,11 +168,19 @@ def refine_with_reference(
         device: where the optimisation runs (e.g. ``"cuda"``: renders, regularisers and kNN on
             the GPU); None: the points' device. ``image_fn`` gets images on that device. The
             results and the renderer's ``last`` come back on the points' device.
+        fusion: after the cycles and the configured final projection of outliers,
+            :func:`dss.fusion.fuse_planes` with these settings moves the points onto the
+            surface the references show (needs ``shading="planes"``). None: no fusion (the paper).
+        fusion_cameras: ``() -> Cameras`` with ``fusion.views`` fresh views per call (required
+            with ``fusion``).
+        noise: the cloud's noise level (std in bbox diagonals; the fusion's depth window).
+        fusion_callback: passed to :func:`dss.fusion.fuse_planes`.
 
     Returns:
         (result, reference renderer): ``result.points``/``.normals`` (N, 3), ``result.history``
-        (loss per step, wall time, ...; ``"device"``: where it ran); the renderer holds the
-        latest references (``last``).
+        (loss per step, wall time, ...; ``"device"``: where it ran; ``"fusion"``: the fusion's
+        per-pass numbers, its consistency and where the normals came from the references); the
+        renderer holds the latest references (``last``).
     """
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {tuple(points.shape)} and {tuple(normals.shape)}")
@@ -175,6 +188,11 @@ def refine_with_reference(
         raise ValueError("points or normals contain NaN/inf rows; drop them first (dss.pointcloud.finite_rows)")
     config = config or OptimizerConfig(cycles=16, normal_steps=19, point_steps=1)
     settings = settings or RenderSettings()
+    if fusion is not None:
+        if not (isinstance(shading, str) and shading == "planes"):
+            raise ValueError(f"plane fusion reads the references' planes: it needs shading='planes', got {shading!r}")
+        if fusion_cameras is None or noise is None:
+            raise ValueError("plane fusion needs fusion_cameras and the noise level")
     home = points.device
     dev = home if device is None else torch.device(device)
     points, normals = points.to(dev), normals.to(dev)
@@ -184,7 +202,32 @@ def refine_with_reference(
                              image_size=image_size)
     log.info("refining %d points: %d cycles x (%d normal + %d point steps), %d views per step",
              len(points), config.cycles, config.normal_steps, config.point_steps, config.views)
-    result = opt.run(progress=progress)
+    result = opt.run(progress=progress, final_projection=False)
+    result.points = opt.project_outliers(result.points)
+    if fusion is not None:
+        # after the outlier projection: the outliers it moved are then within the fusion's
+        # depth window, and the fusion has the last word on every point it can see
+        def plane_reference(cams: Cameras):
+            planes = ref(cams)
+            return planes, planes.abs().amax(-1) > 0  # the background plane is 0
+
+        fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
+                            fusion, float(noise), callback=fusion_callback)
+        # and once more after it: on the fused (cleaner) surface the outlier test is tighter
+        projected = opt.project_outliers(fused.points)
+        moved = (projected - fused.points).norm(dim=1) > 0
+        normals = fused.normals
+        if bool(moved.any()):  # a moved outlier takes the PCA normal at its new place
+            from .pointcloud import estimate_normals
+
+            pca = estimate_normals(projected, k=fusion.normal_k, orient="none").to(projected)
+            pca = torch.where((pca * normals).sum(1, keepdim=True) < 0, -pca, pca)
+            normals = torch.where(moved[:, None], pca, normals)
+        result.points, result.normals = projected, normals
+        result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
+                                    "consistency_mean": float(fused.consistency.mean()),
+                                    "image_normals": float(fused.image_normal_mask.float().mean()),
+                                    "final_projection_moved": int(moved.sum())}
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
     result.history["device"] = str(dev)

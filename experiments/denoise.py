@@ -296,7 +296,7 @@ def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: 
     if mode == "optimized":
         return optimized
     if mode != "pca":
-        raise ValueError(f"normals.output must be 'pca' or 'optimized', got {mode!r}")
+        raise ValueError(f"normals.output must be 'auto', 'pca' or 'optimized', got {mode!r}")
     from dss.pointcloud import estimate_normals
 
     # each sign comes from the optimised normal, so open3d's orientation by propagation (4 s at
@@ -430,30 +430,76 @@ def progress_bar(total: int, desc: str, enabled: bool):
     return bar, update
 
 
+def fusion_config(cfg: DictConfig, shading):
+    """The :class:`dss.fusion.FusionConfig` of ``cfg.fusion``, or None when the stage is off
+    (``enabled: auto``: on in the planes channel)."""
+    from dss.fusion import FusionConfig
+
+    node = cfg.get("fusion") or {}
+    enabled = str(node.get("enabled", "auto")).lower()
+    if enabled not in ("auto", "true", "false"):
+        raise ValueError(f"fusion.enabled must be auto, true or false, got {node.get('enabled')!r}")
+    planes = isinstance(shading, str) and shading == "planes"
+    if enabled == "false" or (enabled == "auto" and not planes):
+        return None
+    if not planes:
+        raise ValueError("fusion.enabled=true needs the planes channel (channel=planes, or a model trained on it)")
+    d = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items() if k != "enabled"}
+    known = set(FusionConfig.__dataclass_fields__)
+    bad = set(d) - known
+    if bad:
+        raise ValueError(f"fusion: unknown keys {sorted(bad)}; known: {sorted(known | {'enabled'})}")
+    return FusionConfig(**d)
+
+
 def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor, generator, spec, desc: str,
-                   shading=None):
+                   shading=None, noise: float | None = None, clean: np.ndarray | None = None, mesh=None,
+                   callback=None, fusion_callback=None):
     """Normalise, refine with ``generator`` under ``spec`` (cameras, renderer settings; shading:
-    the spec's point light unless given), de-normalise.
+    the spec's channel unless given), then the plane fusion (``cfg.fusion``), de-normalise.
+    ``clean`` (M, 3), input units: the ground truth an oracle generator renders (with the
+    normals of ``mesh`` (vertices, faces), input units, when given). ``callback`` and
+    ``fusion_callback``: the optimiser's and the fusion's per-step / per-pass hooks (in the
+    normalised frame; :mod:`experiments.image_study` records its numbers with them).
 
     Returns (points, normals in input units, history, reference renderer, normalisation
     (centre, scale, normalised input points), optimiser config)."""
     from dss.pipeline import refine_with_reference
     from dss.pointcloud import normalize_unit_diagonal
-    from experiments.reference_generators import SpecViewSampler
+    from experiments.reference_generators import SpecViewSampler, oracle_normals
 
     pn, center, scale = normalize_unit_diagonal(points)
     dev = resolve_device(cfg.get("device"))
     ocfg = optimizer_config(cfg.optimizer, cfg.views, cfg.seed)
     sampler = SpecViewSampler(spec, views=ocfg.views, seed=int(cfg.seed), jitter=ocfg.view_jitter)
-    shading = spec.point_light() if shading is None else shading
+    shading = spec.shader() if shading is None else shading
+    settings = spec.render_settings()
+    if hasattr(generator, "bind"):  # the oracle: the clean cloud in the optimiser's frame
+        if clean is None:
+            raise ValueError("reference=oracle renders the ground truth: give clean= or mesh=")
+        cp = (torch.as_tensor(np.asarray(clean), dtype=torch.float32) - center) / scale
+        m = None
+        if mesh is not None:
+            v, f = mesh
+            m = ((np.asarray(v, np.float64) - center.double().numpy()) / scale, f)
+        generator.bind(cp, oracle_normals(cp, pn, normals, mesh=m), settings, shading, spec.backend)
+    fcfg = fusion_config(cfg, shading)
+    fusion_cams = None
+    if fcfg is not None:
+        if noise is None:
+            raise ValueError("the plane fusion needs the noise level")
+        # its own camera stream (seeded apart from the optimiser's), fusion.views per batch
+        fusion_cams = SpecViewSampler(spec, views=fcfg.views, seed=int(cfg.seed) + 7919, jitter=ocfg.view_jitter).sample
     total = (ocfg.cycles + ocfg.error_aware_cycles) * (ocfg.normal_steps + ocfg.point_steps)
     bar, update = progress_bar(total, desc, bool(cfg.get("progress", True)))
     try:
         # on a GPU the optimisation (renders, regularisers, kNN) runs there and the results come
         # back to the CPU; the reference network gets CPU arrays and its images go to the GPU
-        result, ref = refine_with_reference(pn, normals, generator, config=ocfg, settings=spec.render_settings(),
+        result, ref = refine_with_reference(pn, normals, generator, config=ocfg, settings=settings,
                                             shading=shading, sampler=sampler, backend=spec.backend, progress=update,
-                                            device=dev)
+                                            device=dev, keep_background=getattr(generator, "keep_background", True),
+                                            fusion=fcfg, fusion_cameras=fusion_cams, noise=noise,
+                                            callback=callback, fusion_callback=fusion_callback)
     finally:
         bar.close()
     result.history["device"] = describe_device(dev)
@@ -479,12 +525,15 @@ def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list
     fig_cfg = cfg.get("figures", {}) or {}
     cams = figure_cameras(spec, int(fig_cfg.get("views", 4)), int(cfg.seed), fig_cfg.get("image_size"))
     settings = spec.render_settings()
-    shading = spec.point_light() if shading is None else shading
+    shading = spec.shader() if shading is None else shading
+    planes = isinstance(shading, str) and shading == "planes"
     clouds = [((p - center) / scale, n) for p, n in rows_pts]
-    rows = render_rows(clouds, cams, settings, shading, spec.backend)
+    # planes are not a picture: the before/after rows use the paper's sun lights in that channel
+    rows = render_rows(clouds, cams, settings, "sun" if planes else shading, spec.backend)
     written = [save_image_rows(out / "before_after.png", rows, labels).name]
     if ref.last is not None:
         from dss.render import render
+        from dss.shading import planes_normals
 
         cams_r, imgs, _mask, refs = ref.last
         k = min(4, len(cams_r))
@@ -492,8 +541,14 @@ def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list
         p, n = clouds[1]
         with torch.no_grad():
             final = render(p, n, sub, settings, shading=shading, backend=spec.backend).images
-        written.append(save_image_rows(out / "references.png", [imgs[:k].clamp(0, 1), refs[:k].clamp(0, 1),
-                                                                 final.clamp(0, 1)],
+
+        def show(x):  # planes as a normal map (camera-facing normals, world axes -> RGB)
+            if not planes:
+                return x.clamp(0, 1)
+            covered = (x.abs().amax(-1, keepdim=True) > 0)
+            return torch.where(covered, 0.5 + 0.5 * planes_normals(x, sub), torch.zeros_like(x))
+
+        written.append(save_image_rows(out / "references.png", [show(imgs[:k]), show(refs[:k]), show(final)],
                                        ["input render", "reference", "result"]).name)
     steps = ocfg.normal_steps + ocfg.point_steps
     written.append(save_loss_curve(out / "loss.png", history, steps, title).name)
@@ -503,15 +558,39 @@ def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list
     return written
 
 
-def _shading_for(generator, spec, filter_shading: str):
-    """(shading, name): the network sees what it was trained on (the spec's point light); an
-    image filter gets ``filter_shading``: ``sun`` (the paper's three RGB lights: the colour
-    encodes the whole normal) or ``point`` (the spec's light)."""
-    if generator.name == "onnx" or filter_shading == "point":
-        return spec.point_light(), "point light " + str(list(spec.light.position))
-    if filter_shading == "sun":
-        return "sun", "sun"
-    raise ValueError(f"filter_shading must be 'sun' or 'point', got {filter_shading!r}")
+CHANNELS = ("auto", "planes", "sun", "point")
+
+
+def resolve_channel(cfg: DictConfig, generator, budget_note: dict):
+    """(render spec, its source, shading, shading name) for ``generator``.
+
+    A model renders in its training data's channel at its size (its metadata). Filters, identity
+    and the oracle take ``cfg.channel``: ``planes`` (``conf/render/planes.yaml`` at its own size,
+    or ``image_size``), ``point`` (``conf/render/pairs.yaml``'s light) or ``sun`` (the paper's
+    three RGB lights with pairs.yaml's cameras), both at ``image_size`` or the budget's
+    ``filter_image_size``; ``auto``: planes for identity and the oracle, sun for image filters.
+    """
+    from data_prep.render_spec import load_render_spec, spec_path
+
+    channel = str(cfg.get("channel", "auto"))
+    if channel not in CHANNELS:
+        raise ValueError(f"channel must be one of {list(CHANNELS)}, got {channel!r}")
+    if channel == "auto":
+        channel = "planes" if generator.name in ("identity", "oracle") else "sun"
+    size = cfg.get("image_size")
+    if generator.name == "onnx":
+        spec, source = generator.render_spec(None)
+        if size and list(spec.image_size) != [int(size)] * 2:
+            log.warning("image_size=%s ignored: the model fixes the render size to %s", size, list(spec.image_size))
+        return spec, source, spec.shader(), spec.describe_shading()
+    if channel == "planes":
+        spec = load_render_spec(spec_path("planes"), **({"image_size": [int(size)] * 2} if size else {}))
+        return spec, "config (conf/render/planes.yaml)", "planes", "planes"
+    size = size or budget_note.get("filter_image_size")
+    spec = load_render_spec(**({"image_size": [int(size)] * 2} if size else {}))
+    if channel == "sun":
+        return spec, "config", "sun", "sun"
+    return spec, "config", spec.point_light(), spec.describe_shading()
 
 
 # ------------------------------------------------------------------------------ the app
@@ -563,29 +642,27 @@ def run(cfg: DictConfig) -> dict:
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
     by_noise = resolve_all_by_noise(cfg, noise, len(cloud))
     budget_note = resolve_budget(cfg, len(cloud), by_noise["cycles"])
-    base_spec = None
-    size = cfg.get("image_size") or budget_note.get("filter_image_size")
-    if size:
-        from data_prep.render_spec import load_render_spec
-
-        base_spec = load_render_spec(image_size=[int(size)] * 2)
-    spec, spec_source = generator.render_spec(base_spec)
-    if cfg.get("image_size") and list(spec.image_size) != [int(cfg.image_size)] * 2:
-        log.warning("image_size=%s ignored: the model fixes the render size to %s", cfg.image_size, list(spec.image_size))
-    shading, shading_name = _shading_for(generator, spec, str(cfg.get("filter_shading", "sun")))
+    spec, spec_source, shading, shading_name = resolve_channel(cfg, generator, budget_note)
+    fusion_config(cfg, shading)  # a bad fusion block is refused before any work
     # settings resolved: the point count they need is known before any optimisation
     optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(cloud), f"input {input_path}")
     clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
+    if generator.name == "oracle" and clean is None:
+        raise ValueError("reference=oracle renders the ground truth: give clean= or mesh=")
     save_config(cfg, out)
     log.info("denoising %s (%d points, noise %s %.4g) with %s at %s px", input_path, len(cloud),
              "hint" if hint is not None else "estimated", noise, generator.describe(), list(spec.image_size))
 
     t0 = time.perf_counter()
     pts, nrm, history, ref, norm, ocfg = run_refinement(cfg, cloud.points, cloud.normals, generator, spec,
-                                                        f"dss-denoise ({generator.name})", shading=shading)
+                                                        f"dss-denoise ({generator.name})", shading=shading,
+                                                        noise=noise, clean=clean, mesh=mesh)
     t_opt = time.perf_counter() - t0
     nrm_opt = nrm
-    nrm = output_normals(pts, nrm_opt, str(cfg.normals.get("output", "pca")), int(cfg.normals.k))
+    mode = str(cfg.normals.get("output", "auto"))
+    if mode == "auto":  # the plane fusion's normals (the references' where they agree), else PCA
+        mode = "optimized" if "fusion" in history else "pca"
+    nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
     # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
     output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
     if removed is not None:
@@ -600,6 +677,9 @@ def run(cfg: DictConfig) -> dict:
 
         normal_error = {"input_pca": normal_error_deg(cloud_in.points.numpy(), cloud_in.normals.numpy(), mesh),
                         "optimized": normal_error_deg(pts.numpy(), nrm_opt.numpy(), mesh),
+                        # a PCA fit on the same denoised points: what the images' normals must beat
+                        "pca": normal_error_deg(pts.numpy(), output_normals(pts, nrm_opt, "pca",
+                                                                             int(cfg.normals.k)).numpy(), mesh),
                         "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
@@ -631,6 +711,8 @@ def run(cfg: DictConfig) -> dict:
         "reference": {**generator.describe(), "selection": model_note},
         "render": {"source": spec_source, "image_size": list(spec.image_size), "shading": shading_name,
                    "spec": spec.to_dict()},
+        "fusion": history.get("fusion"),
+        "normals_output": mode,
         **optimization_report(history, t_start, t_opt, kernel_build),
         "metrics_input": m_in,
         "metrics_output": m_out,

@@ -10,6 +10,8 @@ with the Hydra group ``conf/reference/{onnx,l0,slic,identity}.yaml`` (``_target_
   image size and the render block of its training data.
 - :class:`L0Reference`, :class:`SlicReference`, :class:`IdentityReference`: the image filters
   of :mod:`dss.filters` (L0 gradient smoothing, SLIC superpixels, no-op).
+- :class:`OracleReference`: renders of the *clean* cloud through the same cameras, channel and
+  renderer settings: the upper-bound control of a denoising comparison (needs ground truth).
 
 Render setup (the one shared setting ``conf/render/pairs.yaml``, :mod:`data_prep.render_spec`):
 :class:`SpecViewSampler` turns a :class:`RenderSpec` into the optimiser's per-cycle cameras
@@ -39,6 +41,7 @@ __all__ = [
     "L0Reference",
     "SlicReference",
     "IdentityReference",
+    "OracleReference",
     "SpecViewSampler",
     "select_model",
     "spec_from_metadata",
@@ -201,6 +204,59 @@ class IdentityReference(_FilterReference):
 
     def __init__(self):
         super().__init__()
+
+
+class OracleReference(_Generator):
+    """Renders of the clean cloud as references (the oracle control; DESIGN.md "Controls").
+
+    The app binds the ground truth after normalising the input (:meth:`bind`): the clean points
+    in the input's normalised frame, their normals, and the run's renderer settings, channel
+    and backend. Each call renders them through the cameras of the input's renders; the
+    references keep their own silhouette (``keep_background`` False).
+    """
+
+    name = "oracle"
+    keep_background = False
+
+    def __init__(self):
+        self.points = self.normals = None
+        self.settings, self.shading, self.backend = None, None, "auto"
+
+    def bind(self, points: torch.Tensor, normals: torch.Tensor, settings, shading, backend: str = "auto") -> None:
+        """Clean points and normals (M, 3) in the optimiser's frame, and how to render them."""
+        self.points, self.normals = points.detach().float(), normals.detach().float()
+        self.settings, self.shading, self.backend = settings, shading, backend
+
+    def __call__(self, images: torch.Tensor, mask: torch.Tensor | None = None, cameras=None) -> torch.Tensor:
+        from dss.render import render
+
+        if self.points is None or cameras is None:
+            raise RuntimeError("the oracle reference renders the clean cloud: bind() it first and pass the cameras")
+        with torch.no_grad():
+            out = render(self.points.to(images.device), self.normals.to(images.device), cameras, self.settings,
+                         shading=self.shading, backend=self.backend)
+        return out.images.to(images)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "clean_points": None if self.points is None else int(len(self.points))}
+
+
+def oracle_normals(clean: torch.Tensor, points: torch.Tensor, normals: torch.Tensor, k: int = 16,
+                   mesh=None) -> torch.Tensor:
+    """Normals (M, 3) of a clean cloud: its mesh's (the closest triangle's, when ``mesh`` is
+    given in the clean cloud's frame), else a PCA fit over ``k`` neighbours; each signed like the
+    nearest of ``points``' ``normals`` (the input's orientation, which the pipeline renders with)."""
+    from dss.knn import knn
+    from dss.pointcloud import estimate_normals
+
+    if mesh is not None:
+        from dss.metrics import mesh_normals_at
+
+        n = torch.from_numpy(mesh_normals_at(clean.double().numpy(), mesh)).to(clean)
+    else:
+        n = estimate_normals(clean, k=k, orient="none").to(clean)
+    j = knn(points, 1, query=clean).idx[:, 0].long()
+    return torch.where((n * normals[j]).sum(1, keepdim=True) < 0, -n, n)
 
 
 # --------------------------------------------------------------------------------- cameras

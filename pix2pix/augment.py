@@ -53,7 +53,8 @@ def find_camera_light_position(render: dict[str, Any] | None) -> list[float] | N
     if not isinstance(render, dict):
         return None
     shading = str(render.get("shading", "")).lower()
-    if shading in ("sun", "suns", "three_suns"):
+    # the planes channel's values change sign under a flip (they are not lit by a light)
+    if shading in ("sun", "suns", "three_suns", "planes"):
         return None
     candidates: list[tuple[Any, Any]] = []
     for key in ("light", "point_light"):

@@ -252,7 +252,7 @@ def test_denoise_app_l0_end_to_end(case, tmp_path):
     assert m["input"]["normals"].startswith("estimated") and m["input"]["nan_rows_dropped"] == 0
     assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0 and m["device"] == "cpu"
     ne = m["normal_error_deg"]
-    assert set(ne) == {"input_pca", "optimized", "output"} and all(0 <= v["mean"] <= 90 for v in ne.values())
+    assert set(ne) == {"input_pca", "optimized", "pca", "output"} and all(0 <= v["mean"] <= 90 for v in ne.values())
     from dss.pointcloud import load_ply
 
     res = load_ply(out / "denoised.ply")
