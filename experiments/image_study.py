@@ -24,7 +24,6 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 log = logging.getLogger("image-study")
