@@ -74,6 +74,7 @@ from .regularizers import (
     RepulsionLoss,
     find_neighbors,
     project_to_neighbour_planes,
+    with_new_differences,
 )
 from .render import RenderOutput, RenderSettings, render
 from .shading import shade
@@ -152,6 +153,10 @@ class OptimizerConfig:
     reg_cutoff: float = 1.0
     # the nearest reg_min_neighbors count whatever the cutoff (RegularizerConfig.min_neighbors)
     reg_min_neighbors: int = 0
+    # the regularisers' weighted-PCA frames (weights, planes) are re-fitted every frames_every-th
+    # step of a cycle and kept in between (the point differences are always current); the paper
+    # re-fits every step (1). The fit is most of a denoising step's regulariser time.
+    frames_every: int = 1
     # > 0: after the last cycle, project points onto the plane of their final_projection_k
     # (x reg_dilation) nearest (dss.regularizers.project_to_neighbour_planes); 0: the paper (none).
     # final_projection_threshold t > 0 moves only the outliers (plane distance > t robust
@@ -210,6 +215,8 @@ class OptimizerConfig:
         for name in ("lr_points", "lr_normals", "silhouette_weight", "hull_step", "fill_step"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if int(self.frames_every) != self.frames_every or self.frames_every < 1:
+            raise ValueError(f"frames_every must be a positive integer, got {self.frames_every}")
         for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -262,15 +269,22 @@ def window_for_cycle(cfg: OptimizerConfig, cycle: int) -> tuple[int, int]:
 
 
 def occlusion_counts(out: RenderOutput) -> torch.Tensor:
-    """o_k: in how many views point k is rendered (valid splat) but visible at no pixel. (N,)"""
-    V, N = out.splats.packed.shape[:2]
-    vis = out.fragments.visible
-    idx = out.fragments.idx.long()
-    seen = torch.zeros(V, N, dtype=torch.bool, device=idx.device)
-    v_ids = torch.arange(V, device=idx.device)[:, None, None, None].expand_as(idx)
-    seen[v_ids[vis], idx[vis]] = True
-    occluded = out.splats.valid & ~seen
-    return occluded.sum(0).float()
+    """o_k: in how many views point k is rendered (valid splat) but visible at no pixel. (N,)
+
+    Counted in the order the kernels rendered in and permuted back once (an (N,) gather): the
+    fragments' (V, H, W, K) indices are never mapped to the caller's order."""
+    frags, splats, _ = out._sorted
+    V, N = splats.packed.shape[:2]
+    vis = frags.visible
+    flat = frags.idx.long() + (torch.arange(V, device=frags.idx.device) * N)[:, None, None, None]
+    seen = torch.zeros(V * N, dtype=torch.bool, device=flat.device)
+    seen[flat[vis]] = True
+    counts = (splats.valid & ~seen.view(V, N)).sum(0).float()
+    if out.point_order is None:
+        return counts
+    caller = torch.empty_like(counts)
+    caller[out.point_order] = counts  # sorted position j holds caller point point_order[j]
+    return caller
 
 
 def _bandwidth(rule, points):
@@ -327,6 +341,8 @@ class MultiViewOptimizer:
         self._img_grad_scale: float | None = None
         self._reg_gamma: dict[int, float] = {}
         self._neighbors = None
+        self._frames: dict[int, object] = {}  # per term: the last fitted frames (frames_every)
+        self._frames_age = 0
         self._pca_normals: torch.Tensor | None = None  # the projection term's PCA normals, last step
         self._sigma = None
         # the reference the coverage was derived from, its coverage (V, H, W) bool and (for the
@@ -372,15 +388,24 @@ class MultiViewOptimizer:
         self._ref_coverage = cache
         return cache[1:] if nearest else cache[1]
 
-    def _regularizer_grads(self, occl) -> torch.Tensor | None:
-        """gamma-weighted regulariser gradients on the points (N, 3), or None."""
+    def _regularizer_grads(self, out: RenderOutput) -> torch.Tensor | None:
+        """gamma-weighted regulariser gradients on the points (N, 3), or None. ``out``: this
+        step's render, for the occlusion counts of a frames fit."""
         c = self.cfg
         total = None
+        occl = None
         for weight, term in ((c.projection_weight, self.proj), (c.repulsion_weight, self.rep)):
             if weight <= 0:
                 continue
             p = self.points.detach().requires_grad_(True)
-            frames = term.frames(p, self.normals.detach(), occl, self._neighbors)
+            cached = self._frames.get(id(term))
+            if cached is None or self._frames_age >= c.frames_every:
+                if occl is None:  # only a fit needs them (its weights)
+                    occl = occlusion_counts(out).detach()
+                frames = term.frames(p, self.normals.detach(), occl, self._neighbors)
+                self._frames[id(term)] = frames
+            else:
+                frames = with_new_differences(cached, p)
             if term is self.proj:
                 self._pca_normals = frames.normal.detach()
             (g,) = torch.autograd.grad(term(p, frames=frames), p)
@@ -415,6 +440,7 @@ class MultiViewOptimizer:
             else:
                 g = weight * g
             total = g if total is None else total + g
+        self._frames_age = 1 if self._frames_age >= c.frames_every else self._frames_age + 1
         return total
 
     def _step(self, kind: str, cams: Cameras, target: torch.Tensor, window: int, stride: int):
@@ -464,8 +490,7 @@ class MultiViewOptimizer:
             elif self.cfg.grad_smoothing > 0:
                 g_img = self._smooth(g_img, self.cfg.grad_smoothing)
         with self.clock("regularizers"):
-            occl = occlusion_counts(out).detach()
-            g_reg = self._regularizer_grads(occl)
+            g_reg = self._regularizer_grads(out)
         # Points move in every step: by image + regulariser gradients in point steps, by the
         # regulariser alone in normal steps (paper "Alternating normal and point update").
         g = g_img if g_reg is None else (g_reg if g_img is None else g_img + g_reg)
@@ -527,6 +552,7 @@ class MultiViewOptimizer:
         if self.cfg.normal_refresh == "pca":
             self._refit_normals(p)
         self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
+        self._frames, self._frames_age = {}, 0  # new neighbour lists: fit anew
         s = self.settings
         self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
 
@@ -605,6 +631,7 @@ class MultiViewOptimizer:
         # the rest of each step: loss, optimiser updates, clipping, the divergence guard, callbacks
         self.history["profile_s"] = {**self.clock.seconds,
                                      "other": max(0.0, self.history["wall_time"] - sum(self.clock.seconds.values()))}
+        self.history["profile_cpu_s"] = dict(self.clock.cpu_seconds)
         if self.history["lr_halvings"]:
             log.warning("the optimisation was unstable: %d steps rejected, learning rates halved %d times "
                         "(x%.3g of the configured ones); lower them", len(self.history["rejected"]),

@@ -234,6 +234,7 @@ def refine_with_reference(
                                     "image_normals": float(fused.image_normal_mask.float().mean()),
                                     "final_projection_moved": int(moved.sum())}
     result.history["profile_s"] = {**result.history.get("profile_s", {}), **clock.seconds}
+    result.history["profile_cpu_s"] = {**result.history.get("profile_cpu_s", {}), **clock.cpu_seconds}
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
     result.history["device"] = str(dev)

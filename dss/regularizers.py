@@ -582,6 +582,17 @@ def local_frames(
     )
 
 
+def with_new_differences(frames: LocalFrames, points: torch.Tensor) -> LocalFrames:
+    """``frames`` with ``diff`` recomputed from ``points`` (N, 3) (differentiable), its weights,
+    centroids and principal directions kept: the regularisers' gradient at moved points under
+    frames fitted a few steps before (the weighted PCA is the costly part of a step)."""
+    if points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64) and load_cpu() is not None:
+        diff = _NeighbourDiff.apply(points, frames.idx, frames.valid)
+    else:
+        diff = (points.unsqueeze(1) - gather_neighbors(points, frames.idx)) * frames.valid.unsqueeze(-1).to(points.dtype)
+    return replace(frames, diff=diff)
+
+
 def repulsion_loss(
     points: torch.Tensor,
     normals: torch.Tensor | None = None,

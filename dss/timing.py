@@ -1,4 +1,5 @@
-"""Wall time per named stage: where a job's seconds go (``metrics.json``'s ``profile_s``)."""
+"""Wall and CPU time per named stage: where a job's seconds go (``metrics.json``'s ``profile_s``
+and ``profile_cpu_s``)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ __all__ = ["StageClock"]
 
 
 class StageClock:
-    """Accumulates wall seconds per stage name: ``with clock("render"): ...``.
+    """Accumulates wall seconds (``seconds``) and process CPU seconds (``cpu_seconds``, every
+    thread of the process) per stage name: ``with clock("render"): ...``. On a shared machine the
+    CPU seconds of a one-thread run are what its wall time would be on an idle one.
 
     Args:
         sync: called before and after each stage (``torch.cuda.synchronize`` times GPU work at
@@ -20,23 +23,27 @@ class StageClock:
 
     def __init__(self, sync: Callable[[], None] | None = None):
         self.seconds: dict[str, float] = {}
+        self.cpu_seconds: dict[str, float] = {}
         self._sync = sync
 
     @contextmanager
     def __call__(self, name: str) -> Iterator[None]:
         if self._sync is not None:
             self._sync()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
             if self._sync is not None:
                 self._sync()
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+            self.cpu_seconds[name] = self.cpu_seconds.get(name, 0.0) + time.process_time() - c0
 
-    def add(self, name: str, seconds: float) -> None:
-        """Count ``seconds`` measured elsewhere under ``name``."""
+    def add(self, name: str, seconds: float, cpu_seconds: float | None = None) -> None:
+        """Count ``seconds`` (and ``cpu_seconds``) measured elsewhere under ``name``."""
         self.seconds[name] = self.seconds.get(name, 0.0) + float(seconds)
+        if cpu_seconds is not None:
+            self.cpu_seconds[name] = self.cpu_seconds.get(name, 0.0) + float(cpu_seconds)
 
     def summary(self, total: float | None = None) -> str:
         """``"load 0.4 s, render 12.1 s, ..."`` in insertion order (and the unaccounted rest)."""

@@ -255,8 +255,10 @@ def resolve_neighbourhood(cfg: DictConfig, n_points: int, cutoff_note: dict | No
 
 def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = None) -> dict:
     """Apply the ``budget`` preset (``default`` | ``fast`` | ``auto``: ``fast`` for inputs of more
-    than ``budget_fast_above`` points): ``cfg.views`` when it is null, the filters' render size
-    (``filter_image_size`` in the note) when ``cfg.image_size`` is null, and the preset's ``cycles_scale`` on cycles that came from ``cycles_by_noise`` (an explicit
+    than ``budget_fast_above`` points): ``cfg.views`` when it is null, the filters' and the planes
+    channel's render sizes (``filter_image_size`` / ``planes_image_size`` in the note) when
+    ``cfg.image_size`` is null, ``cfg.fusion.passes`` when it is null, and the preset's
+    ``cycles_scale`` on cycles that came from ``cycles_by_noise`` (an explicit
     ``optimizer.cycles`` is kept). Returns what was chosen and why (for metrics.json)."""
     setting = str(cfg.get("budget", "default"))
     presets = cfg.get("budgets") or {}
@@ -278,6 +280,13 @@ def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = No
     if cfg.get("image_size") is None and preset.get("filter_image_size"):
         # an image filter renders at any size; a model ignores it (it renders at its training size)
         note["filter_image_size"] = int(preset.filter_image_size)
+    if cfg.get("image_size") is None and preset.get("planes_image_size"):
+        # identity and the oracle in the planes channel; a model renders at its training size
+        note["planes_image_size"] = int(preset.planes_image_size)
+    fusion = cfg.get("fusion")
+    if fusion is not None and fusion.get("passes") is None:
+        fusion.passes = int(preset.get("fusion_passes", 4))
+        note["fusion_passes"] = int(fusion.passes)
     scale = float(preset.get("cycles_scale", 1.0))
     if scale != 1.0 and cycles_note is not None and cycles_note.get("setting") == "auto":
         cfg.optimizer.cycles = max(1, int(round(int(cfg.optimizer.cycles) * scale)))
@@ -446,6 +455,8 @@ def fusion_config(cfg: DictConfig, shading):
     if not planes:
         raise ValueError("fusion.enabled=true needs the planes channel (channel=planes, or a model trained on it)")
     d = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items() if k != "enabled"}
+    if d.get("passes") is None:  # null: the budget preset's (resolve_budget), else FusionConfig's
+        d.pop("passes", None)
     known = set(FusionConfig.__dataclass_fields__)
     bad = set(d) - known
     if bad:
@@ -585,6 +596,7 @@ def resolve_channel(cfg: DictConfig, generator, budget_note: dict):
             log.warning("image_size=%s ignored: the model fixes the render size to %s", size, list(spec.image_size))
         return spec, source, spec.shader(), spec.describe_shading()
     if channel == "planes":
+        size = size or budget_note.get("planes_image_size")
         spec = load_render_spec(spec_path("planes"), **({"image_size": [int(size)] * 2} if size else {}))
         return spec, "config (conf/render/planes.yaml)", "planes", "planes"
     size = size or budget_note.get("filter_image_size")
@@ -613,7 +625,7 @@ def run(cfg: DictConfig) -> dict:
     from dss.pipeline import estimate_noise_level
     from dss.pointcloud import PointCloud, save_ply
 
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     out = run_dir(cfg)
@@ -661,12 +673,12 @@ def run(cfg: DictConfig) -> dict:
     log.info("denoising %s (%d points, noise %s %.4g) with %s at %s px", input_path, len(cloud),
              "hint" if hint is not None else "estimated", noise, generator.describe(), list(spec.image_size))
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     pts, nrm, history, ref, norm, ocfg = run_refinement(cfg, cloud.points, cloud.normals, generator, spec,
                                                         f"dss-denoise ({generator.name})", shading=shading,
                                                         noise=noise, clean=clean, mesh=mesh)
     t_opt = time.perf_counter() - t0
-    clock.add("optimization", t_opt)
+    clock.add("optimization", t_opt, time.process_time() - c0)
     nrm_opt = nrm
     mode = str(cfg.normals.get("output", "auto"))
     if mode == "auto":  # the plane fusion's normals (the references' where they agree), else PCA
@@ -679,7 +691,7 @@ def run(cfg: DictConfig) -> dict:
             outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
 
     protocols = list(cfg.metrics.protocols)
-    t_metrics = time.perf_counter()
+    t_metrics, c_metrics = time.perf_counter(), time.process_time()
     m_in = score(cloud_in.points.numpy(), clean, mesh, protocols)
     m_out = score(pts.numpy(), clean, mesh, protocols)
     normal_error = None
@@ -692,7 +704,7 @@ def run(cfg: DictConfig) -> dict:
                         "pca": normal_error_deg(pts.numpy(), output_normals(pts, nrm_opt, "pca",
                                                                              int(cfg.normals.k)).numpy(), mesh),
                         "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
-    clock.add("metrics", time.perf_counter() - t_metrics)
+    clock.add("metrics", time.perf_counter() - t_metrics, time.process_time() - c_metrics)
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
         from dss.metrics import chamfer_floors
@@ -701,17 +713,19 @@ def run(cfg: DictConfig) -> dict:
             floors = chamfer_floors(mesh, len(cloud_in), int(cfg.seed), protocols, with_mesh=True)
             floor = {pr: r.to_dict() for pr, r in floors.items()}
 
-    rows = [(cloud_in.points, cloud_in.normals), (pts, nrm)]
-    labels = ["noisy input", f"denoised ({generator.name})"]
-    if clean is not None:
-        from dss.pointcloud import estimate_normals
+    figures = []
+    if (cfg.get("figures") or {}).get("enabled", True):
+        with clock("figures"):
+            rows = [(cloud_in.points, cloud_in.normals), (pts, nrm)]
+            labels = ["noisy input", f"denoised ({generator.name})"]
+            if clean is not None:
+                from dss.pointcloud import estimate_normals
 
-        cp = torch.from_numpy(np.asarray(clean, np.float32))
-        rows.append((cp, estimate_normals(cp, k=int(cfg.normals.k))))
-        labels.append("clean (ground truth)")
-    title = f"dss-denoise {Path(input_path).name}, reference {generator.name}"
-    with clock("figures"):
-        figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
+                cp = torch.from_numpy(np.asarray(clean, np.float32))
+                rows.append((cp, estimate_normals(cp, k=int(cfg.normals.k))))
+                labels.append("clean (ground truth)")
+            title = f"dss-denoise {Path(input_path).name}, reference {generator.name}"
+            figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
 
     metrics = {
         "input": input_report,
@@ -731,6 +745,8 @@ def run(cfg: DictConfig) -> dict:
         # seconds per stage of the job; "optimization" split into the loop's parts and the
         # stages after it (host-side wall time)
         "profile_s": {**clock.seconds, "optimization_parts": history.get("profile_s", {})},
+        # the same in process CPU seconds: with threads=1 what the stages take on an idle machine
+        "profile_cpu_s": {**clock.cpu_seconds, "optimization_parts": history.get("profile_cpu_s", {})},
         "metrics_input": m_in,
         "metrics_output": m_out,
         "chamfer_floor": floor,
@@ -738,6 +754,7 @@ def run(cfg: DictConfig) -> dict:
         "summary": {"input": short_metrics(m_in), "output": short_metrics(m_out)},
         "figures": figures,
     }
+    metrics["time_s"]["cpu_total"] = time.process_time() - c_start  # kernel build included
     save_metrics(metrics, out)
     log.info("time per stage: %s", clock.summary(metrics["time_s"]["total"]))
     log.info("optimisation: %s", ", ".join(f"{k} {v:.2f} s" for k, v in history.get("profile_s", {}).items()))

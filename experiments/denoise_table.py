@@ -75,7 +75,8 @@ HALF_KEYS = ("chamfer_pred_to_gt", "chamfer_gt_to_pred")
 #: statuses whose record still carries metrics (the output exists and is finite)
 SCORED = ("ok", "worse_than_input", "reference")
 #: fixed arguments of every DSS run: its own metrics and floor are not needed (scored here)
-DSS_BASE = ["progress=false", "metrics.protocols=[paper]", "metrics.floor=false", "overwrite=true"]
+DSS_BASE = ["progress=false", "metrics.protocols=[paper]", "metrics.floor=false", "figures.enabled=false",
+            "overwrite=true"]
 
 
 def resolve_repo_path(p: str | os.PathLike) -> Path:
@@ -396,7 +397,8 @@ def _run_baseline(spec: str, gt: dict, params: dict, limit: float,
                      threads=threads)
     r = res.record
     rec = {"kind": "baseline", "spec": spec, "params": r.params, "resolved": r.resolved, "status": r.status,
-           "failed": r.failed, "message": r.message, "time_s": r.wall_s, "total_s": r.total_s,
+           "failed": r.failed, "message": r.message, "time_s": r.wall_s, "cpu_s": r.cpu_s,
+           "total_s": r.total_s,
            "time_limit_s": limit, "n_out": r.n_out, "versions": r.versions, "signal": r.signal,
            "stderr_tail": r.stderr_tail[-1500:] if r.failed and r.status != "worse_than_input" else ""}
     if pre is not None:
@@ -451,6 +453,9 @@ def _run_dss(overrides: list[str], case_dir: Path, gt: dict, noise: float, limit
     t_opt = m.get("time_s", {}).get("optimization")
     # the method's time: the optimisation plus the outlier removal before it
     rec["time_s"] = None if t_opt is None else t_opt + float((m.get("outliers") or {}).get("seconds") or 0.0)
+    cpu = m.get("profile_cpu_s") or {}
+    # the same stages in process CPU seconds (with one thread: the wall time on an idle machine)
+    rec["cpu_s"] = cpu["optimization"] + cpu.get("outliers", 0.0) if "optimization" in cpu else None
     rec["outliers_removed"] = (m.get("outliers") or {}).get("removed")
     rec["reference"] = {k: m.get("reference", {}).get(k) for k in ("name", "model", "noise_level", "selection")}
     rec["versions"] = _versions()
@@ -586,12 +591,14 @@ def summarize(records: list[dict], methods: list[str], cases: list[str], held_ou
             r = recs.get(c, {"status": "missing", "message": "no record"})
             m = r.get("metrics") or {}
             cells[c] = {"status": r["status"], "message": r.get("message", ""), "time_s": r.get("time_s"),
+                        "cpu_s": r.get("cpu_s"),
                         **{k: m.get(k) for k in METRIC_KEYS + HALF_KEYS}}
         scored = [c for c in tuning if cells[c]["chamfer"] is not None]
         row = {"method": label, "kind": next(iter(recs.values())).get("kind"), "cases": cells,
                "mean": {k: _mean([cells[c][k] for c in scored]) for k in METRIC_KEYS + HALF_KEYS},
                "n_scored": len(scored), "complete": bool(tuning) and len(scored) == len(tuning),
                "time_s": _mean([cells[c]["time_s"] for c in scored]),
+               "cpu_s": _mean([cells[c]["cpu_s"] for c in scored]),
                "statuses": sorted({cells[c]["status"] for c in cases})}
         if held:
             scored_h = [c for c in held if cells[c]["chamfer"] is not None]
@@ -623,18 +630,19 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
     names = [c["name"] for c in case_info if c["status"] != "skipped"]
     cases = [c for c in names if c not in held] + [c for c in names if c in held]
     agg = ["mean"] + (["held-out mean"] if any(c in held for c in cases) else [])
-    cols = [(c, k) for c in cases for k in METRIC_KEYS] + [(a, k) for a in agg for k in METRIC_KEYS] + [("time", None)]
+    cols = ([(c, k) for c in cases for k in METRIC_KEYS] + [(a, k) for a in agg for k in METRIC_KEYS]
+            + [("time", None), ("cpu", None)])
     aggregate = {"mean": ("mean", "complete"), "held-out mean": ("mean_held_out", "complete_held_out")}
 
     def value(r, c, k):
         if c in aggregate:
             return (r.get(aggregate[c][0]) or {}).get(k)
-        if c == "time":
-            return r["time_s"]
+        if c in ("time", "cpu"):
+            return r.get(f"{c}_s")
         return r["cases"][c][k]
 
     def complete(r, c):
-        return r.get(aggregate[c][1], False) if c in aggregate else (r["complete"] if c == "time" else True)
+        return r.get(aggregate[c][1], False) if c in aggregate else (r["complete"] if c in ("time", "cpu") else True)
 
     best = {}
     for c, k in cols:
@@ -642,8 +650,8 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
         vals = [v for v in vals if v is not None and math.isfinite(v)]
         best[(c, k)] = min(vals) if vals else None
 
-    head = ["method"] + [f"{c}{' (held out)' if c in held else ''} {METRIC_NAMES[k]}" if k else "time (s)"
-                         for c, k in cols]
+    head = ["method"] + [f"{c}{' (held out)' if c in held else ''} {METRIC_NAMES[k]}" if k
+                         else {"time": "time (s)", "cpu": "CPU (s)"}[c] for c, k in cols]
     lines = [f"# {title}", "", *[f"- {n}" for n in notes], "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     labels = {"input": "input (noisy)", "floor": "floor (2nd clean sampling)"}
@@ -651,7 +659,7 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
         out = [labels.get(r["method"], r["method"])]
         for c, k in cols:
             v = value(r, c, k)
-            if c not in aggregate and c != "time" and v is None:
+            if c not in aggregate and c not in ("time", "cpu") and v is None:
                 out.append(r["cases"][c]["status"])
                 continue
             s = _fmt(v)
@@ -661,12 +669,14 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
             elif (v is not None and best[(c, k)] is not None and v == best[(c, k)] and r["kind"] not in ("input", "floor")
                   and complete(r, c)):
                 s = f"**{s}**"
-            if c not in aggregate and c != "time" and k == "chamfer" and r["cases"][c]["status"] == "worse_than_input":
+            if c not in aggregate and k == "chamfer" and r["cases"][c]["status"] == "worse_than_input":
                 s += " †"
             out.append(s)
         lines.append("| " + " | ".join(out) + " |")
     lines += ["", "† worse than the noisy input (Chamfer). Means over cases: `(k/n)` when only k of the n "
-              "cases have a result (not ranked). time: mean method wall time over the scored cases."
+              "cases have a result (not ranked). time: mean method wall time over the scored cases; CPU: "
+              "the same stages' process CPU seconds (with one thread per method, the wall time an idle "
+              "machine would give)."
               + (" mean: over the tuning cases (the settings were chosen on them); held-out mean: over the "
                  "cases marked (held out), which were not looked at while tuning." if len(agg) > 1 else ""), "",
               "## Accuracy and coverage", "",

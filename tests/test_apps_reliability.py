@@ -271,6 +271,7 @@ def test_expected_failures_print_one_line_and_exit_2(sphere_ply, tmp_path):
 
 
 # ------------------------------------------------------------------------------- scale-out
+@pytest.mark.slow  # two app processes in parallel (about 25 s on 2 cores): pytest -m slow
 def test_joblib_launcher_runs_a_multirun_in_parallel_jobs(sphere_ply, tmp_path):
     """`-m hydra/launcher=joblib` (the launcher conf/prep.yaml names for parallel jobs): two jobs in
     worker processes, each with its own run directory and results."""

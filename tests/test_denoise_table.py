@@ -198,7 +198,9 @@ def test_generated_cases_and_paths(tmp_path):
         cfg = compose("denoise_table")
     assert cfg.out_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
     labels = dt.method_list(cfg)
-    assert labels[-4:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle"] and "cgal_jet" in labels
+    assert labels[-6:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle", "dss_pix2pix_fast",
+                           "dss_identity_fast"] and "cgal_jet" in labels
+    assert "budget=fast" in dt._request("dss_identity_fast", cfg, 0.01)["overrides"]
     req = dt._request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
 

@@ -56,6 +56,7 @@ class RunRecord:
     failed: bool
     message: str = ""
     wall_s: float | None = None  # the method call inside the worker
+    cpu_s: float | None = None  # ... its process CPU seconds (all threads)
     total_s: float | None = None  # including process start-up and data transfer
     time_limit_s: float | None = None
     exit_code: int | None = None
@@ -264,6 +265,7 @@ def run_method(
         rec.versions = res.get("versions", {})
         rec.resolved = res.get("resolved", {})
         rec.wall_s = res.get("wall_s")
+        rec.cpu_s = res.get("cpu_s")
         if res.get("status") != "done":
             rec.status = res.get("status", "crash")
             rec.message = res.get("message", "")

@@ -95,9 +95,10 @@ def main(argv=None) -> int:
     try:
         fn = resolve(job["method"])
         result["versions"] = _versions(job["method"])
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn(points, normals, **job.get("params", {}))
         result["wall_s"] = time.perf_counter() - t0
+        result["cpu_s"] = time.process_time() - c0  # every thread of the worker: load-independent
     except Exception as e:  # noqa: BLE001 - every failure of a third-party method is recorded
         from experiments.baselines.methods import MethodUnavailable
 
