@@ -269,7 +269,7 @@ def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, w
 
 
 def add_scene_args(ap: argparse.ArgumentParser, repeats: int):
-    """The sizes, views, image size and timing repeats of the GPU benchmarks (this and ab_gpu)."""
+    """The sizes, views, image size and timing repeats of the GPU benchmarks ."""
     ap.add_argument("--points", type=int, nargs="+", default=[20_000, 100_000])
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--image-size", type=int, default=256)

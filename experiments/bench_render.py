@@ -2,6 +2,7 @@
 
     dss-bench                      # 8K, 20K, 100K points x 12 views x 256^2, writes results/bench/
     dss-bench --sizes 8000 --reps 3 --windows 2 4
+    dss-bench --vector-level 1     # the kernels' AVX2 paths only (0: scalar loops)
 
 Points are sampled from the kangaroo mesh in ../shared/data when it is there (a real shape),
 else from a generated torus knot. Every number is the median of ``--reps`` runs after one
@@ -203,6 +204,9 @@ def run(argv=None) -> dict:
     ap.add_argument("--backward-sizes", type=int, nargs="*", default=[20000])
     ap.add_argument("--order", action="store_true",
                     help="also compare the file's point order with render()'s spatial sort (backward sizes)")
+    ap.add_argument("--vector-level", type=int, choices=(0, 1, 2), default=None,
+                    help="the highest vector level the C++ kernels may take (0 scalar, 1 AVX2, 2 AVX-512; default: "
+                         "the best this CPU has), to time a CPU without AVX2 or AVX-512 on one that has them")
     ap.add_argument("--out", default="results/bench")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -210,6 +214,8 @@ def run(argv=None) -> dict:
 
     if not _ext.cpu_available():
         raise SystemExit(f"the C++ backend is not available: {_ext.build_error()}")
+    if args.vector_level is not None:
+        _ext.load_cpu().set_vector_level(args.vector_level)
     rows, back_rows, order_rows = [], [], []
     for n in args.sizes:
         pts, nrm, src = benchmark_cloud(n)

@@ -235,21 +235,11 @@ def _describe(d: dict) -> str:
         return "renderer timings: " + "; ".join(
             f"{r['points']} points forward C++ {_fmt(r.get('cpp_forward_ms'), 3)} ms (x{_fmt(r.get('speedup'), 3)} the reference)"
             for r in d["forward"])
-    if isinstance(d.get("median_wall_s"), dict) and "speedup" in d:  # experiments.ab_denoise
-        m = d["median_wall_s"]
-        return (f"dss-denoise wall time, medians of {d.get('rounds', '?')} alternating rounds: base "
-                f"{d.get('base_commit', d.get('base', '?'))} {_fmt(m.get('base'), 3)} s, working tree "
-                f"{_fmt(m.get('work'), 3)} s ({_fmt(d['speedup'], 3)}x)")
     if isinstance(d.get("rows"), list) and isinstance(d.get("knn"), list):  # experiments.bench_regularizers
         return "regularisers per step, torch / C++ (ms): " + "; ".join(
             f"{r['points']} points {_fmt(r['torch_ms'], 3)} / {_fmt(r['cpp_ms'], 3)}" for r in d["rows"]) + \
             "; kNN cKDTree / C++ (ms): " + "; ".join(
             f"{r['points']} points k={r['k']} {_fmt(r['scipy_ms'], 3)} / {_fmt(r['cpp_ms'], 3)}" for r in d["knn"])
-    if isinstance(d.get("base_label"), str) and isinstance(d.get("results"), list):  # experiments.ab_gpu
-        return f"CUDA render step on {d.get('device', '?')}, medians of {d.get('rounds', '?')} alternating rounds, " \
-               "base / working tree: " + "; ".join(
-                   f"{r['points']} points {_fmt(r['base']['step_ms'], 3)} / {_fmt(r['work']['step_ms'], 3)} ms "
-                   f"({_fmt(r['speedup'], 3)}x)" for r in d["results"])
     if isinstance(d.get("device"), str) and isinstance(d.get("results"), list):  # experiments.bench_gpu
         return f"CUDA on {d['device']}: " + "; ".join(
             f"{r['points']} points kernels {_fmt(r['kernels']['sum_median_ms'], 3)} ms"

@@ -631,29 +631,6 @@ def test_bench_gpu_times_the_walks_in_turn(monkeypatch):
     assert all(0 <= r["min_ms"] <= r["median_ms"] <= r["max_ms"] for r in res)
 
 
-def test_ab_gpu_summarizes_alternating_runs(tmp_path):
-    """experiments.ab_gpu --summarize: medians per tree and size over the rounds, base / work."""
-    import json
-
-    from experiments import ab_gpu
-
-    runs = []
-    for base_ms, work_ms in ((12.0, 4.0), (13.0, 3.0), (11.0, 5.0)):
-        for label, ms in (("old", base_ms), (".", work_ms)):
-            runs.append(json.dumps({"label": label, "dss": f"{label}/dss/__init__.py", "points": 20000, "source": "s",
-                                    "device": "GPU", "step_ms": ms, "forward_with_grad_ms": ms / 2,
-                                    "backward_ms": ms / 2, "peak_memory_mb": 10 * ms}))
-    f = tmp_path / "ab.txt"
-    f.write_text("\n".join(["=== noise", *runs]) + "\n")
-    out = tmp_path / "ab.json"
-    (row,) = ab_gpu.main(["--summarize", str(f), "--base-label", "old", "--out", str(out)])
-    assert row["base"]["step_ms"] == 12.0 and row["work"]["step_ms"] == 4.0 and row["speedup"] == 3.0
-    assert row["base"]["step_ms_runs"] == [12.0, 13.0, 11.0]
-    assert json.loads(out.read_text())["command"].startswith("python -m experiments.ab_gpu --summarize")
-    with pytest.raises(SystemExit, match="expected two trees"):
-        ab_gpu.main(["--summarize", str(f), "--base-label", "nope"])
-
-
 # ----------------------------------------------------------------------------------------------
 # On a GPU: the real module against the CPU kernel
 
