@@ -121,7 +121,7 @@ def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, war
     res = {
         "project_and_shade": _timed(project, warmup, repeats),
         "rasterize_forward": _timed(lambda: mod.rasterize_forward(*fwd_args), warmup, repeats),
-        # the kernel's two walks over a window (same bits; dss_cuda.cu visibility_kernel), call by call in turn
+        # the kernel's two walks over a window (same bits; visibility_backward_cuda.cu visibility_kernel), call by call in turn
         **dict(zip(("visibility_backward", "visibility_backward_rows"),
                    _timed_in_turn([partial(_with_vis_order, o, vis) for o in ("partials", "rows")], warmup, repeats))),
         "visibility_walks_equal": bool(torch.equal(_with_vis_order("partials", vis), _with_vis_order("rows", vis))),

@@ -76,8 +76,8 @@ for s in $STAGES; do
       tests/test_cuda_build.py -k "deep_bins or ties"
     ;;
   ptxas)  # registers, shared memory, spills of every kernel for this GPU
-    stage ptxas 180 nvcc -c -std=c++17 -O3 --fmad=false -arch=native -Xptxas -v -I dss/csrc \
-      dss/csrc/dss_cuda.cu -o /tmp/dss_cuda_ptxas.o
+    stage ptxas 180 bash -c 'for f in dss/csrc/*_cuda.cu; do nvcc -c -std=c++17 -O3 --fmad=false -arch=native -Xptxas -v \
+      -I dss/csrc "$f" -o /tmp/dss_cuda_ptxas.o || exit 1; done'
     ;;
   bench)
     stage bench 300 "$PY" -m experiments.bench_gpu --points 20000 100000 --repeats 20 --profile --out "$OUT/bench_gpu.json"
