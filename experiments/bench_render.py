@@ -1,6 +1,7 @@
 """``dss-bench``: time the renderer's forward and backward passes, both backends, one run.
 
-    dss-bench                      # 8K, 20K, 100K points x 12 views x 256^2, writes results/bench/
+    dss-bench                      # 8K, 20K, 100K points x 12 views x 256^2, writes outputs/dss-bench/<time>/
+    dss-bench --publish            # writes results/bench/threads2/ (run it with OMP_NUM_THREADS=2)
     dss-bench --sizes 8000 --reps 3 --windows 2 4
     dss-bench --vector-level 1     # the kernels' AVX2 paths only (0: scalar loops)
 
@@ -181,7 +182,7 @@ def machine_info() -> dict:
     level = mod.vector_level() if mod is not None else None
     return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__,
             "kernel_openmp": _ext.openmp_enabled(),
-            # the vector paths the C++ kernels take (dss_cpu.cpp g_vector_level)
+            # the vector paths the C++ kernels take (dss/csrc/cpu_runtime.cpp g_vector_level)
             "kernel_vector_isa": {0: "scalar", 1: "avx2", 2: "avx512"}.get(level)}
 
 
@@ -207,8 +208,11 @@ def run(argv=None) -> dict:
     ap.add_argument("--vector-level", type=int, choices=(0, 1, 2), default=None,
                     help="the highest vector level the C++ kernels may take (0 scalar, 1 AVX2, 2 AVX-512; default: "
                          "the best this CPU has), to time a CPU without AVX2 or AVX-512 on one that has them")
-    ap.add_argument("--out", default="results/bench")
+    from experiments import outputs
+
+    outputs.add_arguments(ap, published="results/bench/threads2")
     args = ap.parse_args(argv)
+    args.out = str(outputs.folder(args, "dss-bench"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from dss import _ext
 

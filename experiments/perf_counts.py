@@ -1,6 +1,6 @@
 """Count the renderer's work per workload and derive floor times (issue: speed to the limit).
 
-    python -m experiments.perf_counts [--out docs/perf_counts.json]
+    python -m experiments.perf_counts [--publish]   # --publish: results/bench/perf_counts.json
 
 For each workload (points x 12 views x 256^2) it counts, from one real optimisation step of the
 C++ backend (the cloud against a copy moved by 0.003 of the bbox diagonal, as dss-runtime-table):
@@ -37,6 +37,7 @@ import torch
 from dss.rasterizer.reference import bbox
 from dss.render import RenderSettings
 from dss.splats import auto_sigma, project_splats
+from experiments import outputs
 from experiments.bench_render import benchmark_cloud, cameras_for, machine_info
 
 # flops per bbox pixel test: dx, dy (2), q (5 mul + 2 add), compare (1); accepted: exp (~20),
@@ -223,11 +224,11 @@ def floors(work: dict, rates: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[8000, 20000, 100000])
-    ap.add_argument("--out", default="docs/perf_counts.json")
+    outputs.add_arguments(ap, published="results/bench/perf_counts.json", what="output JSON file")
     ap.add_argument("--gpu-rates", metavar="OUT", default=None,
                     help="instead: measure this machine's GPU rates and write them, with the floors of the "
                          "workloads counted in --counts on those rates, to OUT (JSON)")
-    ap.add_argument("--counts", default="docs/perf_counts.json", help="with --gpu-rates: the counted work")
+    ap.add_argument("--counts", default="results/bench/perf_counts.json", help="with --gpu-rates: the counted work")
     args = ap.parse_args(argv)
     if args.gpu_rates:
         from dss.io_utils import atomic_write_json
@@ -255,7 +256,9 @@ def main(argv=None) -> int:
         print(json.dumps(r))
     from dss.io_utils import atomic_write_json
 
-    atomic_write_json(args.out, {"machine": machine_info(), "rates": rates, "workloads": rows})
+    out = outputs.folder(args, "perf_counts", name="perf_counts.json")
+    atomic_write_json(out, {"machine": machine_info(), "rates": rates, "workloads": rows})
+    print(f"wrote {out}")
     return 0
 
 

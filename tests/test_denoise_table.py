@@ -196,9 +196,9 @@ def test_generated_cases_and_paths(tmp_path):
     assert dt.resolve_repo_path("/abs/x.ply") == Path("/abs/x.ply")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("denoise_table")
-    assert cfg.out_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
+    assert cfg.published_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
     labels = dt.method_list(cfg)
-    assert labels[-3:] == ["dss_pix2pix", "dss_l0", "dss_identity"] and "cgal_jet" in labels
+    assert labels[-4:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle"] and "cgal_jet" in labels
     req = dt._request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
 

@@ -71,7 +71,7 @@ def test_build_reads_tables_sweeps_and_commands(tmp_path):
 def test_check_and_write(tmp_path, capsys):
     res = _fake_results(tmp_path)
     assert main(["--results", str(res), "--check"]) == 1          # no README yet
-    assert main(["--results", str(res)]) == 0
+    assert main(["--results", str(res), "--publish"]) == 0
     assert (res / "README.md").read_text() == build(res)
     assert main(["--results", str(res), "--check"]) == 0
     (res / "misc" / "new.json").write_text(json.dumps({"command": "dss-new"}))
@@ -90,4 +90,4 @@ def test_missing_or_broken_results(tmp_path):
 def test_shipped_results_readme_is_current():
     """results/README.md must be what dss-results writes from the committed result files."""
     assert (ROOT / "results" / "README.md").read_text() == build(ROOT / "results"), \
-        "results/README.md is out of date: run dss-results"
+        "results/README.md is out of date: run dss-results --publish"

@@ -178,7 +178,7 @@ def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
     (the same counted work, one formula); --gpu-rates refuses to run without a GPU."""
     from experiments import perf_counts
 
-    counts = json.loads(Path("docs/perf_counts.json").read_text())
+    counts = json.loads(Path("results/bench/perf_counts.json").read_text())
     rows = perf_counts.gpu_floors(counts, rt.H100_PUBLISHED)
     for w, r in zip(counts["workloads"], rows):
         assert r["points"] == w["points"]
@@ -190,11 +190,11 @@ def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
             perf_counts.main(["--gpu-rates", "unused.json"])
 
 
-H100_RUN = Path(__file__).resolve().parents[1] / "results" / "bench" / "gpu" / "s40_h100"
+H100_RUN = Path(__file__).resolve().parents[1] / "results" / "bench" / "gpu" / "h100"
 
 
 def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
-    """--from-json --gpu-rates: session 40's H100 table with floors on that GPU's measured rates;
+    """--from-json --gpu-rates: the shipped H100 table with floors on that GPU's measured rates;
     the measurements are kept as they were, the floors equal perf_counts' own on those rates."""
     from experiments import perf_counts
 
@@ -225,7 +225,7 @@ def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
 
 def test_gpu_rates_of_another_device_are_refused(tmp_path):
     """The H200's rates cannot be the floors of the H100's CUDA column."""
-    h200_rates = H100_RUN.parent / "s40_h200" / "gpu_rates.json"
+    h200_rates = H100_RUN.parent / "h200" / "gpu_rates.json"
     with pytest.raises(SystemExit, match="gpu_rates.json: rates measured on 'NVIDIA H200'.*another device"):
         rt.run(["--from-json", str(H100_RUN / "runtime_table_cuda.json"), "--gpu-rates", str(h200_rates),
                 "--out", str(tmp_path / "rt")])
@@ -233,11 +233,15 @@ def test_gpu_rates_of_another_device_are_refused(tmp_path):
 
 
 def test_runtime_chart_reads_tables_of_older_versions(tmp_path):
-    """A CPU table from before the step floors (session 21's code): ratios on its forward floor."""
+    """A CPU table without per-step floors (only the forward's, cpu_floor_ms): ratios on that floor."""
     from experiments.figures import runtime_chart as rc
 
-    old = Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table_cpp_6647acd.json"
-    table = json.loads(old.read_text())
+    table = json.loads((Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table.json").read_text())
+    for f in table["floor"]["workloads"]:
+        for k in ("cpu_step_floor_ms", "step_floor_counts_backward", "h100_published_step_floor_ms"):
+            f.pop(k, None)
+    old = tmp_path / "old_table.json"
+    old.write_text(json.dumps(table))
     data = rc.run(["--cpu", str(old), "--cuda", str(H100_RUN / "runtime_table_cuda.json"), "--out", str(tmp_path / "c")])
     for w, f in zip(data["workloads"], table["floor"]["workloads"]):
         floors = f.get("cpu_step_floor_ms") or {k: f["cpu_floor_ms"] for k in rt.KINDS}
@@ -263,7 +267,7 @@ def test_bad_gpu_rates_and_tables_are_refused_with_their_names(tmp_path):
 
 
 def test_runtime_chart_plots_the_tables_numbers(tmp_path):
-    """dss-fig-runtime on the shipped CPU table and session 40's H100 table: a PNG, and a JSON whose
+    """dss-fig-runtime on the shipped CPU table and the shipped H100 table: a PNG, and a JSON whose
     numbers are the tables' own (step = forward + backward; ratios over each table's floors)."""
     from experiments.figures import runtime_chart as rc
 
