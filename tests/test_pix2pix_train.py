@@ -365,6 +365,7 @@ def test_run_dir_contents_and_export(trained_run):
     grids = sorted((out / "val_grids").glob("epoch*.png"))
     assert len(grids) == 2  # one per validation epoch
     assert len(list((out / "val_grids").glob("validate-*.png"))) == 1  # the best checkpoint's validation
+    assert (out / "denoiser.onnx").stat().st_mode & 0o044 == 0o044 and grids[0].stat().st_mode & 0o044 == 0o044
     import matplotlib.image
 
     img = matplotlib.image.imread(grids[-1])
