@@ -31,10 +31,10 @@ visible ones:
    With references that nobody trusts it moves nothing.
 
 Measured on the shipped example (20K points, 1% noise, Chamfer x1e4, paper protocol), after the
-DSS optimisation (0.326): references rendered from the clean cloud take it to 0.24, the input's
-own renders leave it at 0.33 (consistency 0.04 on average); without the consistency weight the
-input's renders take it to 1.1 (the front envelope). ``python -m experiments.image_study`` has the
-per-stage numbers.
+DSS cycles (0.336): references rendered from the clean cloud take it to 0.234, the input's own
+renders leave it at 0.327 (consistency 0.04 on average); without the consistency weight the
+input's renders pulled the points to their front envelope (Chamfer above 1). Per-stage numbers:
+``python -m experiments.image_study``; docs/denoising.md.
 
 The displacement is the closed-form minimiser, per point, of the squared depth residuals
 against the references along the point's normal: a Gauss-Newton step of a point-wise image
@@ -51,7 +51,6 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from .cameras import Cameras
-from .shading import planes_inverse_depth
 
 log = logging.getLogger(__name__)
 
@@ -223,7 +222,8 @@ class FusionResult:
         consistency: (N,) the last pass's consistency weight.
         image_normal_mask: (N,) bool, where ``normals`` came from the references.
         passes: per pass: fraction of points observed (>= 1 and >= ``min_views`` views), mean
-            consistency, mean and max |move| (bbox diagonals), the mean spread, seconds.
+            consistency, mean and max |move| (bbox diagonals), the mean spread, seconds (of
+            which rendering and mapping the references: ``reference_seconds``).
     """
 
     points: torch.Tensor
@@ -294,10 +294,13 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
         t0 = time.perf_counter()
         n = _pca_normals(p, signs, cfg.normal_k)
         sums = FusionSums(len(p), p.device)
+        t_ref = 0.0
         for _ in range(cfg.batches):
             cams = sample_cameras().to(p.device)
             with torch.no_grad():
+                t1 = time.perf_counter()
                 planes, mask = reference(cams)
+                t_ref += time.perf_counter() - t1
                 obs = observe_planes(p, n, cams, planes.to(p), mask.to(p.device), tau, cfg.max_angle_deg,
                                      cfg.min_cos)
             sums.add(obs, cfg.consistency_px, cfg.consistency_noise * float(noise))
@@ -317,7 +320,7 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
              "consistency_mean": float(est["consistency"].mean()), "filled": float(filled.float().mean()),
              "move_mean": float(move.abs().mean()), "move_max": float(move.abs().max()),
              "spread_median": float(est["spread"][seen].median()) if bool(seen.any()) else float("nan"),
-             "tau": tau, "seconds": time.perf_counter() - t0}
+             "tau": tau, "seconds": time.perf_counter() - t0, "reference_seconds": t_ref}
         stats.append(s)
         log.info("plane fusion pass %d: %.0f%% of points observed, consistency %.2f, mean move %.2g (max %.2g)",
                  k, 100 * s["observed"], s["consistency_mean"], s["move_mean"], s["move_max"])

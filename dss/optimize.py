@@ -78,6 +78,7 @@ from .regularizers import (
 from .render import RenderOutput, RenderSettings, render
 from .shading import shade
 from .splats import auto_sigma
+from .timing import StageClock
 from .views import SphereViewSampler, error_aware_cameras
 
 log = logging.getLogger(__name__)
@@ -334,6 +335,8 @@ class MultiViewOptimizer:
         self._cycle_decay = 1.0  # lr_decay ** cycle
         self.history: dict = {"step": [], "loss": [], "image_loss": [], "time": [], "kind": [], "lr_halvings": 0,
                               "rejected": [], "config": asdict(self.cfg)}
+        # host-side wall time per part of the loop (history["profile_s"])
+        self.clock = StageClock()
         self._make_optimizers()
 
     # ------------------------------------------------------------------ internals
@@ -428,8 +431,9 @@ class MultiViewOptimizer:
         saved = (self.points.detach().clone(), self.normals.detach().clone())
         pts = self.points if (image_moves_points or need_img_scale) else self.points.detach()
         sil = self.cfg.silhouette_weight > 0
-        out = render(pts, self.normals if move_normals else self.normals.detach(), cams, settings,
-                     shading=self._with_coverage if sil else self.shading, backend=self.backend, sigma=self._sigma)
+        with self.clock("render"):
+            out = render(pts, self.normals if move_normals else self.normals.detach(), cams, settings,
+                         shading=self._with_coverage if sil else self.shading, backend=self.backend, sigma=self._sigma)
         if sil:
             img_loss = self._image_loss(out.images[..., :-1], target)
             cover = self._coverage(target).to(out.images.dtype)
@@ -440,7 +444,8 @@ class MultiViewOptimizer:
             self._diverged("the image loss is not finite", saved)
             return float("nan"), float("nan")
         if img_loss.requires_grad:
-            img_loss.backward()
+            with self.clock("backward"):
+                img_loss.backward()
         g_img = self.points.grad
         if g_img is not None:
             # Pixels covered only by near edge-on splats have a tiny total weight, and the
@@ -458,8 +463,9 @@ class MultiViewOptimizer:
                 g_img = None
             elif self.cfg.grad_smoothing > 0:
                 g_img = self._smooth(g_img, self.cfg.grad_smoothing)
-        occl = occlusion_counts(out).detach()
-        g_reg = self._regularizer_grads(occl)
+        with self.clock("regularizers"):
+            occl = occlusion_counts(out).detach()
+            g_reg = self._regularizer_grads(occl)
         # Points move in every step: by image + regulariser gradients in point steps, by the
         # regulariser alone in normal steps (paper "Alternating normal and point update").
         g = g_img if g_reg is None else (g_reg if g_img is None else g_img + g_reg)
@@ -596,6 +602,9 @@ class MultiViewOptimizer:
                 self.points.copy_(self.project_outliers(self.points.detach()))
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
+        # the rest of each step: loss, optimiser updates, clipping, the divergence guard, callbacks
+        self.history["profile_s"] = {**self.clock.seconds,
+                                     "other": max(0.0, self.history["wall_time"] - sum(self.clock.seconds.values()))}
         if self.history["lr_halvings"]:
             log.warning("the optimisation was unstable: %d steps rejected, learning rates halved %d times "
                         "(x%.3g of the configured ones); lower them", len(self.history["rejected"]),
@@ -613,10 +622,11 @@ class MultiViewOptimizer:
                     cams = self._error_aware(cams, gen)
                 else:  # on the points' device: the renders and the reference see one device
                     cams = self.sampler.sample().to(self.points.device)
-            with torch.no_grad():
+            with torch.no_grad(), self.clock("references"):
                 target = self.reference(cams).detach()
             self._cycle_decay = c.lr_decay ** cycle
-            self._refresh_neighbourhoods()
+            with self.clock("neighbourhoods"):
+                self._refresh_neighbourhoods()
             if cycle > 0 and c.lr_decay != 1.0:
                 for opt in (self.opt_p, self.opt_n):
                     for group in opt.param_groups:

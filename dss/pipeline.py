@@ -29,6 +29,7 @@ from .optimize import MultiViewOptimizer, OptimizationResult, OptimizerConfig
 from .pointcloud import all_finite
 from .render import RenderSettings, render
 from .splats import auto_sigma
+from .timing import StageClock
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +204,9 @@ def refine_with_reference(
     log.info("refining %d points: %d cycles x (%d normal + %d point steps), %d views per step",
              len(points), config.cycles, config.normal_steps, config.point_steps, config.views)
     result = opt.run(progress=progress, final_projection=False)
-    result.points = opt.project_outliers(result.points)
+    clock = StageClock()  # the stages after the cycles (history["profile_s"])
+    with clock("outlier_projection"):
+        result.points = opt.project_outliers(result.points)
     if fusion is not None:
         # after the outlier projection: the outliers it moved are then within the fusion's
         # depth window, and the fusion has the last word on every point it can see
@@ -211,10 +214,12 @@ def refine_with_reference(
             planes = ref(cams)
             return planes, planes.abs().amax(-1) > 0  # the background plane is 0
 
-        fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
-                            fusion, float(noise), callback=fusion_callback)
+        with clock("fusion"):
+            fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
+                                fusion, float(noise), callback=fusion_callback)
         # and once more after it: on the fused (cleaner) surface the outlier test is tighter
-        projected = opt.project_outliers(fused.points)
+        with clock("outlier_projection"):
+            projected = opt.project_outliers(fused.points)
         moved = (projected - fused.points).norm(dim=1) > 0
         normals = fused.normals
         if bool(moved.any()):  # a moved outlier takes the PCA normal at its new place
@@ -228,6 +233,7 @@ def refine_with_reference(
                                     "consistency_mean": float(fused.consistency.mean()),
                                     "image_normals": float(fused.image_normal_mask.float().mean()),
                                     "final_projection_moved": int(moved.sum())}
+    result.history["profile_s"] = {**result.history.get("profile_s", {}), **clock.seconds}
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
     result.history["device"] = str(dev)

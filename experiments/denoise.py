@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from dss.timing import StageClock
 from experiments.common import (
     OutputExistsError,
     claim_output,
@@ -627,17 +628,23 @@ def run(cfg: DictConfig) -> dict:
         raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
     claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
     output = resolve_output(cfg, out, "denoised.ply")
-    cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
-                                     bool(cfg.normals.recompute))
-    generator, model_note = make_reference(cfg, None) if _explicit_model(cfg) else (None, None)
+    clock = StageClock()  # where the job's time goes: metrics.json profile_s and the log
+    with clock("load"):
+        cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
+                                         bool(cfg.normals.recompute))
+    with clock("reference_setup"):
+        generator, model_note = make_reference(cfg, None) if _explicit_model(cfg) else (None, None)
     kernel_build = prepare_kernels(dev)
     cloud_in = cloud  # the input as given: scored and drawn as "noisy input"
-    cloud, outlier_report, removed = remove_outliers(
-        cloud, cfg.get("outliers", {}), None if input_report["normals"] == "from file" else int(cfg.normals.k))
-    estimated = estimate_noise_level(cloud.points)
+    with clock("outliers"):
+        cloud, outlier_report, removed = remove_outliers(
+            cloud, cfg.get("outliers", {}), None if input_report["normals"] == "from file" else int(cfg.normals.k))
+    with clock("noise_estimate"):
+        estimated = estimate_noise_level(cloud.points)
     noise = float(hint) if hint is not None else estimated
     if generator is None:
-        generator, model_note = make_reference(cfg, noise)
+        with clock("reference_setup"):
+            generator, model_note = make_reference(cfg, noise)
     if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
@@ -647,7 +654,8 @@ def run(cfg: DictConfig) -> dict:
     fusion_config(cfg, shading)  # a bad fusion block is refused before any work
     # settings resolved: the point count they need is known before any optimisation
     optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(cloud), f"input {input_path}")
-    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
+    with clock("ground_truth"):
+        clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
     if generator.name == "oracle" and clean is None:
         raise ValueError("reference=oracle renders the ground truth: give clean= or mesh=")
     save_config(cfg, out)
@@ -659,17 +667,20 @@ def run(cfg: DictConfig) -> dict:
                                                         f"dss-denoise ({generator.name})", shading=shading,
                                                         noise=noise, clean=clean, mesh=mesh)
     t_opt = time.perf_counter() - t0
+    clock.add("optimization", t_opt)
     nrm_opt = nrm
     mode = str(cfg.normals.get("output", "auto"))
     if mode == "auto":  # the plane fusion's normals (the references' where they agree), else PCA
         mode = "optimized" if "fusion" in history else "pca"
-    nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
-    # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
-    output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
-    if removed is not None:
-        outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
+    with clock("write"):
+        nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
+        # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
+        output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
+        if removed is not None:
+            outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
 
     protocols = list(cfg.metrics.protocols)
+    t_metrics = time.perf_counter()
     m_in = score(cloud_in.points.numpy(), clean, mesh, protocols)
     m_out = score(pts.numpy(), clean, mesh, protocols)
     normal_error = None
@@ -682,12 +693,14 @@ def run(cfg: DictConfig) -> dict:
                         "pca": normal_error_deg(pts.numpy(), output_normals(pts, nrm_opt, "pca",
                                                                              int(cfg.normals.k)).numpy(), mesh),
                         "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
+    clock.add("metrics", time.perf_counter() - t_metrics)
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
         from dss.metrics import chamfer_floors
 
-        floors = chamfer_floors(mesh, len(cloud_in), int(cfg.seed), protocols, with_mesh=True)
-        floor = {pr: r.to_dict() for pr, r in floors.items()}
+        with clock("chamfer_floor"):
+            floors = chamfer_floors(mesh, len(cloud_in), int(cfg.seed), protocols, with_mesh=True)
+            floor = {pr: r.to_dict() for pr, r in floors.items()}
 
     rows = [(cloud_in.points, cloud_in.normals), (pts, nrm)]
     labels = ["noisy input", f"denoised ({generator.name})"]
@@ -698,7 +711,8 @@ def run(cfg: DictConfig) -> dict:
         rows.append((cp, estimate_normals(cp, k=int(cfg.normals.k))))
         labels.append("clean (ground truth)")
     title = f"dss-denoise {Path(input_path).name}, reference {generator.name}"
-    figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
+    with clock("figures"):
+        figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
 
     metrics = {
         "input": input_report,
@@ -715,6 +729,9 @@ def run(cfg: DictConfig) -> dict:
         "fusion": history.get("fusion"),
         "normals_output": mode,
         **optimization_report(history, t_start, t_opt, kernel_build),
+        # seconds per stage of the job; "optimization" split into the loop's parts and the
+        # stages after it (host-side wall time)
+        "profile_s": {**clock.seconds, "optimization_parts": history.get("profile_s", {})},
         "metrics_input": m_in,
         "metrics_output": m_out,
         "chamfer_floor": floor,
@@ -723,6 +740,8 @@ def run(cfg: DictConfig) -> dict:
         "figures": figures,
     }
     save_metrics(metrics, out)
+    log.info("time per stage: %s", clock.summary(metrics["time_s"]["total"]))
+    log.info("optimisation: %s", ", ".join(f"{k} {v:.2f} s" for k, v in history.get("profile_s", {}).items()))
     _log_summary(metrics)
     log_run(cfg, out, metrics, history, figures)
     release_claims()

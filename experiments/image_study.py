@@ -24,7 +24,6 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 log = logging.getLogger("image-study")
@@ -207,6 +206,11 @@ def plot(res: dict, path: Path) -> Path:
     return path
 
 
+def title(references: list[str], overrides: list[str]) -> str:
+    shown = [o for o in overrides if not o.startswith("progress=")]
+    return f"dss-denoise stage by stage ({', '.join(references)}); {' '.join(shown) or 'the shipped example, defaults'}"
+
+
 def run(references: list[str], overrides: list[str], out: Path, command: str = "") -> dict:
     from dss.io_utils import atomic_write_json
 
@@ -214,7 +218,7 @@ def run(references: list[str], overrides: list[str], out: Path, command: str = "
     runs = [study_reference(overrides, r, out) for r in references]
     res = {"command": command, "overrides": overrides, "references": references, "runs": runs,
            "protocol": "paper (Chamfer x1e4, Hausdorff x1e3, input units)",
-           "title": f"dss-denoise stage by stage ({', '.join(references)}); {' '.join(overrides) or 'defaults'}"}
+           "title": title(references, overrides)}
     atomic_write_json(out / "image_study.json", res)
     plot(res, out / "image_study.png")
     return res

@@ -253,6 +253,13 @@ def test_denoise_app_l0_end_to_end(case, tmp_path):
     assert 0.006 < m["noise"]["estimated"] < 0.014 and m["time_s"]["total"] > 0 and m["device"] == "cpu"
     ne = m["normal_error_deg"]
     assert set(ne) == {"input_pca", "optimized", "pca", "output"} and all(0 <= v["mean"] <= 90 for v in ne.values())
+    # the time profile: the job's stages and the optimisation loop's parts, all counted
+    prof = m["profile_s"]
+    assert {"load", "outliers", "noise_estimate", "optimization", "write", "metrics", "figures"} <= set(prof)
+    assert {"render", "backward", "regularizers", "references", "neighbourhoods", "other",
+            "outlier_projection"} <= set(prof["optimization_parts"])
+    assert all(v >= 0 for v in prof.values() if isinstance(v, float))
+    assert sum(v for v in prof.values() if isinstance(v, float)) <= m["time_s"]["total"] + 1.0
     from dss.pointcloud import load_ply
 
     res = load_ply(out / "denoised.ply")

@@ -198,6 +198,7 @@ def test_oracle_references_clearly_beat_identity(example_5k, tmp_path):
     assert oracle["normal_error_deg"]["output"]["mean"] < oracle["normal_error_deg"]["pca"]["mean"]
     assert oracle["fusion"]["consistency_mean"] > 2 * ident["fusion"]["consistency_mean"]
     assert oracle["reference"]["name"] == "oracle" and oracle["render"]["shading"] == "planes"
+    assert oracle["profile_s"]["optimization_parts"]["fusion"] > 0
 
 
 def test_oracle_needs_ground_truth(example_5k, tmp_path):
