@@ -449,6 +449,7 @@ def _ranks(dump: Path) -> list[dict]:
     return [torch.load(dump / f"rank{r}.pt", map_location="cpu", weights_only=False) for r in (0, 1)]
 
 
+@pytest.mark.slow  # two training processes, about two minutes on two cores
 def test_ddp_on_two_cpu_processes_agrees_and_resumes(pairs_root, tmp_path):
     """Lightning DDP (gloo) with 2 processes: both ranks end with the same weights and step, and
     the checkpoint resumes under DDP to the planned step with the ranks still in agreement."""
