@@ -25,9 +25,11 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).parent / "csrc"
-# The CPU module's sources: the renderer's kernels (whose module table also names the others), the
-# regularisers' weighted PCA and the kNN search.
-CPU_SOURCES = ("dss_cpu.cpp", "frames_cpu.cpp", "knn_cpu.cpp")
+# The CPU module's sources, one per stage (dss/csrc/dss_cpu.h lists what each holds): the bindings,
+# the shared run-time state, the renderer's stages, the regularisers' weighted PCA and the kNN.
+CPU_SOURCES = ("dss_cpu_bind.cpp", "cpu_runtime.cpp", "projection_cpu.cpp", "rasterize_cpu.cpp",
+               "blend_backward_cpu.cpp", "visibility_backward_cpu.cpp", "shading_cpu.cpp", "loss_cpu.cpp",
+               "ordering_cpu.cpp", "frames_cpu.cpp", "knn_cpu.cpp")
 _lock = threading.Lock()
 _cache: dict[str, object] = {}
 _failed: dict[str, str] = {}
@@ -119,7 +121,8 @@ def build_seconds() -> float:
 
 
 def _headers() -> list[Path]:
-    return sorted(_CSRC.glob("*.h"))
+    """The headers the CPU sources include (all but the CUDA launchers' dss_cuda.h)."""
+    return sorted(h for h in _CSRC.glob("*.h") if h.name != "dss_cuda.h")
 
 
 def _build(name: str, sources: list[Path], **kw):
@@ -183,7 +186,7 @@ def loaded_cpu():
 
 def empty_cache() -> int:
     """Free the output blocks the C++ kernels keep parked for reuse (up to 512 MB; see
-    ``pooled_empty`` in dss_cpu.cpp); returns the bytes released (0 when the module is not loaded)."""
+    ``pooled_empty`` in dss/csrc/cpu_runtime.cpp); returns the bytes released (0 when the module is not loaded)."""
     mod = loaded_cpu()
     return int(mod.empty_cache()) if mod is not None else 0
 

@@ -1,4 +1,4 @@
-"""Build-on-first-use loader for the CUDA kernels (``dss/csrc/dss_cuda.cu`` + ``dss_cuda_bind.cpp``).
+"""Build-on-first-use loader for the CUDA kernels (``dss/csrc/*_cuda.cu`` + ``dss_cuda_bind.cpp``).
 
 Like :mod:`dss._ext`: compiled once with ``torch.utils.cpp_extension.load`` and cached in
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) under a name that carries the
@@ -28,8 +28,11 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).parent / "csrc"
-SOURCES = (_CSRC / "dss_cuda.cu", _CSRC / "dss_cuda_bind.cpp")
-# Flags every nvcc build of dss_cuda.cu must use (the compile test uses them too).
+# One kernel file per stage (dss/csrc/dss_cuda.h lists the launchers), then the torch glue.
+KERNEL_SOURCES = tuple(_CSRC / f for f in ("projection_cuda.cu", "shading_cuda.cu", "rasterize_cuda.cu",
+                                           "blend_backward_cuda.cu", "visibility_backward_cuda.cu"))
+SOURCES = (*KERNEL_SOURCES, _CSRC / "dss_cuda_bind.cpp")
+# Flags every nvcc build of the kernel files must use (the compile test uses them too).
 NVCC_FLAGS = ("-O3", "--fmad=false")
 
 _NAME = "dss_cuda"
@@ -37,7 +40,7 @@ _lock = threading.Lock()
 _cache: dict[str, object] = {}
 _failed: dict[str, str] = {}
 
-__all__ = ["load_cuda", "cuda_available", "build_error", "SOURCES", "NVCC_FLAGS"]
+__all__ = ["load_cuda", "cuda_available", "build_error", "SOURCES", "KERNEL_SOURCES", "NVCC_FLAGS"]
 
 
 def _why_not() -> str | None:
@@ -56,7 +59,7 @@ def _why_not() -> str | None:
 def _build():
     from ._ext import load_hashed
 
-    return load_hashed(_NAME, list(SOURCES), sorted(_CSRC.glob("*.h")), extra_cflags=["-O3"],
+    return load_hashed(_NAME, list(SOURCES), sorted([*_CSRC.glob("*.h"), *_CSRC.glob("*.cuh")]), extra_cflags=["-O3"],
                        extra_cuda_cflags=list(NVCC_FLAGS), what="the CUDA kernels")
 
 

@@ -47,7 +47,7 @@ def morton_codes(points: torch.Tensor) -> torch.Tensor:
 def spatial_order(points: torch.Tensor) -> torch.Tensor:
     """(N,) int64 permutation that sorts ``points`` along the Z-order curve (stable).
 
-    CPU float32 points go through the C++ twin (``morton_order`` in dss_cpu.cpp: the same codes,
+    CPU float32 points go through the C++ twin (``morton_order`` in dss/csrc/ordering_cpu.cpp: the same codes,
     a radix sort; ~0.5 against ~2.3 ms per 20K-point render) when the module is already loaded;
     :func:`morton_codes` + ``torch.argsort`` here is the reference it is tested against.
 

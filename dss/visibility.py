@@ -56,7 +56,7 @@ MAX_SLOPE = 3.0
 
 
 def _plane_depth(pl, px, py, z, u, v, f):
-    """Depth of each point's tangent plane at pixel (px, py) (dss_cpu.cpp plane_depth)."""
+    """Depth of each point's tangent plane at pixel (px, py) (the C++ kernel's vis_state, dss/csrc/visibility_backward_cpu.h)."""
     iz = pl[:, 0] * px + pl[:, 1] * py + pl[:, 2]
     zp = torch.where(iz > 0, 1.0 / torch.where(iz > 0, iz, torch.ones_like(iz)), z)
     dmax = MAX_SLOPE * torch.sqrt((px - u) ** 2 + (py - v) ** 2) * z / f

@@ -121,7 +121,7 @@ def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, war
     res = {
         "project_and_shade": _timed(project, warmup, repeats),
         "rasterize_forward": _timed(lambda: mod.rasterize_forward(*fwd_args), warmup, repeats),
-        # the kernel's two walks over a window (same bits; dss_cuda.cu visibility_kernel), call by call in turn
+        # the kernel's two walks over a window (same bits; visibility_backward_cuda.cu visibility_kernel), call by call in turn
         **dict(zip(("visibility_backward", "visibility_backward_rows"),
                    _timed_in_turn([partial(_with_vis_order, o, vis) for o in ("partials", "rows")], warmup, repeats))),
         "visibility_walks_equal": bool(torch.equal(_with_vis_order("partials", vis), _with_vis_order("rows", vis))),
@@ -269,7 +269,7 @@ def run(points_list=(20_000, 100_000), views: int = 12, image_size: int = 256, w
 
 
 def add_scene_args(ap: argparse.ArgumentParser, repeats: int):
-    """The sizes, views, image size and timing repeats of the GPU benchmarks (this and ab_gpu)."""
+    """The sizes, views, image size and timing repeats of the GPU benchmarks ."""
     ap.add_argument("--points", type=int, nargs="+", default=[20_000, 100_000])
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--image-size", type=int, default=256)

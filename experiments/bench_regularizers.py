@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from experiments.bench_common import main_for, write_result
+from dss.io_utils import atomic_write_json
 from experiments.figures import command_line
 
 ASSETS = Path(__file__).resolve().parent / "assets" / "example"
@@ -127,10 +127,14 @@ def run(argv=None) -> dict:
               f"{r['grad_rel_err_vs_float64']['cpp']:.1e} (cpp)")
     result = {"threads": args.threads, "reps": args.reps, "rows": rows, "knn": knn_rows,
               "command": command_line("python -m experiments.bench_regularizers", argv)}
-    return write_result(result, args.out)
+    if args.out:
+        atomic_write_json(args.out, result)
+    return result
 
 
-main = main_for(run)
+def main(argv=None) -> int:
+    run(argv)
+    return 0
 
 
 if __name__ == "__main__":

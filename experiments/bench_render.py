@@ -1,7 +1,9 @@
 """``dss-bench``: time the renderer's forward and backward passes, both backends, one run.
 
-    dss-bench                      # 8K, 20K, 100K points x 12 views x 256^2, writes results/bench/
+    dss-bench                      # 8K, 20K, 100K points x 12 views x 256^2, writes outputs/dss-bench/<time>/
+    dss-bench --publish            # writes results/bench/threads2/ (run it with OMP_NUM_THREADS=2)
     dss-bench --sizes 8000 --reps 3 --windows 2 4
+    dss-bench --vector-level 1     # the kernels' AVX2 paths only (0: scalar loops)
 
 Points are sampled from the kangaroo mesh in ../shared/data when it is there (a real shape),
 else from a generated torus knot. Every number is the median of ``--reps`` runs after one
@@ -180,7 +182,7 @@ def machine_info() -> dict:
     level = mod.vector_level() if mod is not None else None
     return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "cores": os.cpu_count(), "torch": torch.__version__,
             "kernel_openmp": _ext.openmp_enabled(),
-            # the vector paths the C++ kernels take (dss_cpu.cpp g_vector_level)
+            # the vector paths the C++ kernels take (dss/csrc/cpu_runtime.cpp g_vector_level)
             "kernel_vector_isa": {0: "scalar", 1: "avx2", 2: "avx512"}.get(level)}
 
 
@@ -203,13 +205,21 @@ def run(argv=None) -> dict:
     ap.add_argument("--backward-sizes", type=int, nargs="*", default=[20000])
     ap.add_argument("--order", action="store_true",
                     help="also compare the file's point order with render()'s spatial sort (backward sizes)")
-    ap.add_argument("--out", default="results/bench")
+    ap.add_argument("--vector-level", type=int, choices=(0, 1, 2), default=None,
+                    help="the highest vector level the C++ kernels may take (0 scalar, 1 AVX2, 2 AVX-512; default: "
+                         "the best this CPU has), to time a CPU without AVX2 or AVX-512 on one that has them")
+    from experiments import outputs
+
+    outputs.add_arguments(ap, published="results/bench/threads2")
     args = ap.parse_args(argv)
+    args.out = str(outputs.folder(args, "dss-bench"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from dss import _ext
 
     if not _ext.cpu_available():
         raise SystemExit(f"the C++ backend is not available: {_ext.build_error()}")
+    if args.vector_level is not None:
+        _ext.load_cpu().set_vector_level(args.vector_level)
     rows, back_rows, order_rows = [], [], []
     for n in args.sizes:
         pts, nrm, src = benchmark_cloud(n)

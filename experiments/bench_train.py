@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-DEFAULT_OUT = Path("results") / "bench_train.json"
+DEFAULT_OUT = Path("results") / "bench" / "bench_train.json"
 
 
 def _cpu_model() -> str:
@@ -100,8 +100,11 @@ def main(argv: list[str] | None = None) -> dict:
                    help="batch size for the paper preset (pix2pix default 1; 256 px is slow on a CPU)")
     p.add_argument("--warmup", type=int, default=1)
     p.add_argument("--batches", type=int, default=4)
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    from experiments import outputs
+
+    outputs.add_arguments(p, published=str(DEFAULT_OUT), what="output JSON file")
     args = p.parse_args(argv)
+    args.out = Path(outputs.folder(args, "bench_train", name="bench_train.json"))
 
     import torch
 

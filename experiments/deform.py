@@ -118,7 +118,7 @@ def _snapshot(points, normals, cams, settings, shading, backend) -> np.ndarray:
     return image_grid([to_uint8(i) for i in imgs], ncols=1)
 
 
-def _plot_curves(out: Path, history: dict, chamfer_log: list[dict]):
+def _plot_curves(out: Path, history: dict, chamfer_log: list[dict], image_loss: str = "l1"):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -127,7 +127,7 @@ def _plot_curves(out: Path, history: dict, chamfer_log: list[dict]):
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot(history["step"], history["image_loss"], lw=1)
     ax.set_xlabel("step")
-    ax.set_ylabel("image loss (SMAPE, mean over elements)")
+    ax.set_ylabel(f"image loss ({image_loss.upper()}, mean over elements)")
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
     atomic_savefig(fig, out / "loss_curve.png")
@@ -243,7 +243,7 @@ def run(cfg: DictConfig) -> dict:
     cols = [snaps[s] for s in sorted(snaps)] + [tgt_col]
     save_png(out / "snapshots.png", np.concatenate([np.pad(c, ((0, 0), (0, 4), (0, 0)), constant_values=255) for c in cols], 1))
     atomic_write_json(out / "loss.json", {k: result.history[k] for k in ("step", "loss", "image_loss", "time", "kind")})
-    _plot_curves(out, result.history, chamfer_log)
+    _plot_curves(out, result.history, chamfer_log, str(opt_cfg.image_loss))
 
     final = evaluate(result.points, tp, protocol="paper")
     initial = evaluate(sp, tp, protocol="paper")

@@ -367,7 +367,7 @@ def save_image_rows(path: Path, rows: list[torch.Tensor], labels: list[str]) -> 
     return path
 
 
-def save_loss_curve(path: Path, history: dict, steps_per_cycle: int, title: str) -> Path:
+def save_loss_curve(path: Path, history: dict, steps_per_cycle: int, title: str, image_loss: str = "l1") -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -381,7 +381,8 @@ def save_loss_curve(path: Path, history: dict, steps_per_cycle: int, title: str)
     for c in range(steps_per_cycle, len(loss), steps_per_cycle):
         ax.axvline(c + 0.5, color="0.85", lw=0.5, zorder=0)
     ax.set_xlabel("step (grey lines: new views and references)")
-    ax.set_ylabel("image loss (SMAPE)")
+    # the plotted value is the step's whole objective; name the image term the config chose
+    ax.set_ylabel(f"loss ({image_loss.upper()} image term + regularisers)")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
     atomic_savefig(fig, path)
@@ -563,7 +564,7 @@ def write_figures(out: Path, cfg: DictConfig, spec, rows_pts: list, labels: list
         written.append(save_image_rows(out / "references.png", [show(imgs[:k]), show(refs[:k]), show(final)],
                                        ["input render", "reference", "result"]).name)
     steps = ocfg.normal_steps + ocfg.point_steps
-    written.append(save_loss_curve(out / "loss.png", history, steps, title).name)
+    written.append(save_loss_curve(out / "loss.png", history, steps, title, str(ocfg.image_loss)).name)
     atomic_write_json(out / "loss.json", {"step": history["step"], "loss": history["loss"], "kind": history["kind"],
                                           "time": history["time"], "steps_per_cycle": steps})
     written.append("loss.json")

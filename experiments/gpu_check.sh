@@ -7,7 +7,6 @@
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh            # all stages
 #     OUT=/tmp/gpu bash experiments/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table,
 #                                                           # memcheck, racecheck (compute-sanitizer)
-#     AB_BASE=/path/to/old/tree OUT=/tmp/gpu bash experiments/gpu_check.sh ab   # A/B of the render step
 #     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/gpu_check.sh env tests bench rates table
 #
 # DEADLINE_S: seconds for all the stages together (a lent machine runs one command for at most
@@ -77,14 +76,11 @@ for s in $STAGES; do
       tests/test_cuda_build.py -k "deep_bins or ties"
     ;;
   ptxas)  # registers, shared memory, spills of every kernel for this GPU
-    stage ptxas 180 nvcc -c -std=c++17 -O3 --fmad=false -arch=native -Xptxas -v -I dss/csrc \
-      dss/csrc/dss_cuda.cu -o /tmp/dss_cuda_ptxas.o
+    stage ptxas 180 bash -c 'for f in dss/csrc/*_cuda.cu; do nvcc -c -std=c++17 -O3 --fmad=false -arch=native -Xptxas -v \
+      -I dss/csrc "$f" -o /tmp/dss_cuda_ptxas.o || exit 1; done'
     ;;
   bench)
     stage bench 300 "$PY" -m experiments.bench_gpu --points 20000 100000 --repeats 20 --profile --out "$OUT/bench_gpu.json"
-    ;;
-  ab)  # the render step of the dss in $AB_BASE (another revision's files) against this tree's, 3 rounds alternating
-    stage ab 500 bash -c "for r in 1 2 3; do for t in \"\$AB_BASE\" .; do TORCH_EXTENSIONS_DIR=$TORCH_EXTENSIONS_DIR/\$(basename \"\$t\") PYTHONPATH=\"\$t\":$PWD $PY experiments/ab_gpu.py --label \"\$t\" || exit 1; done; done"
     ;;
   rates)  # the GPU's own ceilings (FP32 matmul, device copy) and the counted workloads' floors on them
     rm -f "$OUT/gpu_rates.json"  # never let the table stage read an earlier run's rates
@@ -98,7 +94,7 @@ for s in $STAGES; do
       ${rates_arg[@]+"${rates_arg[@]}"}
     ;;
   *)
-    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck, ab)"
+    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck)"
     failed=$((failed + 1))
     ;;
   esac

@@ -1,7 +1,8 @@
 """How well ``dss.pointcloud.find_outliers`` (dss-denoise's outlier removal) finds uniform outliers,
 and what it costs a cloud without them.
 
-    python -m experiments.outlier_study                      # -> results/outliers/outlier_study.{json,md,png}
+    python -m experiments.outlier_study                      # -> outputs/outlier_study/<time>/outlier_study.{json,md,png}
+    python -m experiments.outlier_study --publish            # -> results/outliers/outlier_study.{json,md,png}
     python -m experiments.outlier_study --shapes 3 --out /tmp/o.json   # quicker
 
 Cases: dss-denoise-table's (kangaroo and the first ``--shapes`` generated test shapes), made by
@@ -131,8 +132,11 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--shapes", type=int, default=6, help="generated test shapes besides kangaroo (default 6)")
-    ap.add_argument("--out", type=Path, default=ROOT / "results" / "outliers" / "outlier_study.json")
+    from experiments import outputs
+
+    outputs.add_arguments(ap, published="results/outliers/outlier_study.json", what="output JSON file (.md, .png beside it)")
     a = ap.parse_args(argv)
+    a.out = Path(outputs.folder(a, "outlier_study", name="outlier_study.json"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     params = outlier_params(OmegaConf.load(ROOT / "conf" / "denoise.yaml").outliers)
     table_cfg = OmegaConf.load(ROOT / "conf" / "denoise_table.yaml")

@@ -1,6 +1,6 @@
 """Count the renderer's work per workload and derive floor times (issue: speed to the limit).
 
-    python -m experiments.perf_counts [--out docs/perf_counts.json]
+    python -m experiments.perf_counts [--publish]   # --publish: results/bench/perf_counts.json
 
 For each workload (points x 12 views x 256^2) it counts, from one real optimisation step of the
 C++ backend (the cloud against a copy moved by 0.003 of the bbox diagonal, as dss-runtime-table):
@@ -13,9 +13,6 @@ C++ backend (the cloud against a copy moved by 0.003 of the bbox diagonal, as ds
 - backward of a position step: the same plus the visibility gradient's (point, view, pixel)
   evaluations, counted exactly: window pixels (9 x 9 at window 4) inside the image whose loss
   gradient is non-zero, the pixels the kernel evaluates.
-
-``--boxes OUT`` counts instead what the CPU binning and tile loop see (tile entries, tile rows,
-box pixels) for the reference boxes and for the kernels' tightened ones (``tight_bbox``).
 
 Each count is charged a cost in floating-point operations (constants below, from the kernels'
 arithmetic; a division or square root counts as one) and the bytes that must move at least once
@@ -40,6 +37,7 @@ import torch
 from dss.rasterizer.reference import bbox
 from dss.render import RenderSettings
 from dss.splats import auto_sigma, project_splats
+from experiments import outputs
 from experiments.bench_render import benchmark_cloud, cameras_for, machine_info
 
 # flops per bbox pixel test: dx, dy (2), q (5 mul + 2 add), compare (1); accepted: exp (~20),
@@ -216,50 +214,6 @@ def count(n: int, views: int = 12, size: int = 256) -> dict:
                          "normal": {"flops": nrm_flops, "bytes": nrm_bytes}}}
 
 
-def tight_bbox(packed: torch.Tensor, H: int, W: int, cutoff: float):
-    """``bbox()`` shrunk as the kernels' binning shrinks it (splat_math.h ``tighten_box``): edge
-    rows and columns whose float32 pixel-centre offset d has d^2 (D - 128 eps ac) > 4a * 2 cutoff
-    (rows; 4c for columns), D = 4ac - b2^2, at most two per edge; forms that are not clearly
-    positive definite keep their box. Returns (j0, j1, i0, i1); an empty box has j0 > j1 or i0 > i1."""
-    j0, j1, i0, i1 = bbox(packed, H, W)
-    a, b2, c = (packed[..., f].double() for f in (2, 3, 4))
-    two_cut = 2.0 * float(np.float32(cutoff))
-    ok = (a > 1e-30) & (c > 1e-30) & (a < 1e30) & (c < 1e30) & (b2.abs() < 1e30) & (two_cut > 0)
-    det4 = 4 * a * c - b2 * b2
-    g = det4 - 128.0 * 2.0**-24 * a * c
-    ok &= (det4 > 0) & (g > 0.5 * det4)
-    u, v = packed[..., 0].float(), packed[..., 1].float()
-
-    def out(line, centre, lim):  # float32 offset, as the tile loop computes it, then double
-        d = ((line.float() + 0.5) - centre).double()
-        return (ok & (d * d * g > lim)).long()
-
-    for _ in range(2):
-        i0 = i0 + out(i0, v, 4 * a * two_cut)
-        i1 = i1 - out(i1, v, 4 * a * two_cut)
-        j0 = j0 + out(j0, u, 4 * c * two_cut)
-        j1 = j1 - out(j1, u, 4 * c * two_cut)
-    return j0, j1, i0, i1
-
-
-def box_counts(packed: torch.Tensor, H: int, W: int, cutoff: float, tile: int = 16) -> dict:
-    """What the CPU rasteriser's binning and tile loop see, for the reference boxes and the
-    tightened ones: tile entries (a splat in one tile's bin), tile rows (a splat's box rows in
-    one tile: the tile loop's unit, one pair of 8-pixel gate tests unless the row is skipped as
-    full and closer) and box pixels, over valid splats."""
-    valid = packed[..., 9] > 0
-    res = {}
-    for name, box in (("bbox", bbox(packed, H, W)), ("tight", tight_bbox(packed, H, W, cutoff))):
-        j0, j1, i0, i1 = box
-        drawn = valid & (j1 >= j0) & (i1 >= i0)
-        rows, cols = (i1 - i0 + 1).clamp_min(0), (j1 - j0 + 1).clamp_min(0)
-        ntx = (j1.div(tile, rounding_mode="floor") - j0.div(tile, rounding_mode="floor") + 1).clamp_min(0)
-        nty = (i1.div(tile, rounding_mode="floor") - i0.div(tile, rounding_mode="floor") + 1).clamp_min(0)
-        res[name] = {"drawn_splats": int(drawn.sum()), "tile_entries": int((ntx * nty)[drawn].sum()),
-                     "tile_rows": int((rows * ntx)[drawn].sum()), "pixel_tests": int((rows * cols)[drawn].sum())}
-    return res
-
-
 def floors(work: dict, rates: dict) -> dict:
     """floor = max(flops / rate, bytes / bandwidth) in ms."""
     c = 1e3 * work["flops"] / rates["flops_per_s"]
@@ -270,28 +224,12 @@ def floors(work: dict, rates: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[8000, 20000, 100000])
-    ap.add_argument("--out", default="docs/perf_counts.json")
+    outputs.add_arguments(ap, published="results/bench/perf_counts.json", what="output JSON file")
     ap.add_argument("--gpu-rates", metavar="OUT", default=None,
                     help="instead: measure this machine's GPU rates and write them, with the floors of the "
                          "workloads counted in --counts on those rates, to OUT (JSON)")
-    ap.add_argument("--counts", default="docs/perf_counts.json", help="with --gpu-rates: the counted work")
-    ap.add_argument("--boxes", metavar="OUT", default=None,
-                    help="instead: count each workload's tile entries, tile rows and box pixels for the "
-                         "reference boxes and the binning's tightened ones, and write them to OUT (JSON)")
+    ap.add_argument("--counts", default="results/bench/perf_counts.json", help="with --gpu-rates: the counted work")
     args = ap.parse_args(argv)
-    if args.boxes:
-        from dss.io_utils import atomic_write_json
-
-        rows = []
-        for n in args.sizes:
-            _, _, _, s, _, src, packed = _workload(n, 12, 256)
-            rows.append({"points": n, "views": 12, "image_size": 256, "source": src,
-                         **box_counts(packed, 256, 256, s.cutoff)})
-            print(json.dumps(rows[-1]))
-        argv_s = argv if argv is not None else sys.argv[1:]
-        atomic_write_json(args.boxes, {"command": "python -m experiments.perf_counts " + " ".join(argv_s),
-                                       "workloads": rows})
-        return 0
     if args.gpu_rates:
         from dss.io_utils import atomic_write_json
 
@@ -318,7 +256,9 @@ def main(argv=None) -> int:
         print(json.dumps(r))
     from dss.io_utils import atomic_write_json
 
-    atomic_write_json(args.out, {"machine": machine_info(), "rates": rates, "workloads": rows})
+    out = outputs.folder(args, "perf_counts", name="perf_counts.json")
+    atomic_write_json(out, {"machine": machine_info(), "rates": rates, "workloads": rows})
+    print(f"wrote {out}")
     return 0
 
 

@@ -66,7 +66,7 @@ from dss.losses import smape_loss
 from dss.render import RenderSettings, render
 from dss.splats import auto_sigma
 from dss.views import SphereViewSampler
-from experiments import perf_counts
+from experiments import outputs, perf_counts
 from experiments.bench_render import benchmark_cloud, machine_info
 
 log = logging.getLogger("dss-runtime-table")
@@ -598,8 +598,9 @@ def parse_args(argv=None):
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: leave as is)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="tiny sizes and steps (for tests); explicit options win")
-    ap.add_argument("--out", default="results/bench/runtime_table", help="output prefix: writes <out>.json and <out>.md")
-    ap.add_argument("--counts", default="docs/perf_counts.json",
+    outputs.add_arguments(ap, published="results/bench/runtime_table",
+                          what="output prefix: writes <out>.json and <out>.md")
+    ap.add_argument("--counts", default="results/bench/perf_counts.json",
                     help="perf_counts JSON for the floor comparison (python -m experiments.perf_counts); '' to skip")
     ap.add_argument("--gpu-rates", default=None, metavar="JSON",
                     help="a GPU's measured rates (python -m experiments.perf_counts --gpu-rates JSON, on that GPU): "
@@ -626,7 +627,11 @@ def parse_args(argv=None):
             ap.error(f"--{name.replace('_', '-')} must be >= 1")
     if args.warmup < 0:
         ap.error("--warmup must be >= 0")
+    if args.publish and "cpp" not in args.backends:
+        ap.error("--publish writes the CPU table (results/bench/runtime_table); give a run without the cpp "
+                 "backend an --out (the published GPU runs are in results/bench/gpu/<gpu>/)")
     args.chosen = chosen
+    args.out = str(outputs.folder(args, "dss-runtime-table", name="runtime_table"))
     return args
 
 

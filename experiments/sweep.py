@@ -21,7 +21,8 @@ their rate, and the mean wall time. Per axis and method: the first value with a 
 ("starts to fail") and, on axes with ``knee: true`` (budget knobs, cheapest value first), the
 *knee*: the cheapest value whose mean CD is within ``knee_tolerance`` of the axis's best.
 
-Outputs in ``out_dir``: ``sweep.json`` (every point, every record's status and metrics),
+Outputs in ``out_dir`` (a fresh ``outputs/dss-sweep/<date>`` unless given; ``publish=true`` copies the
+summary, without ``tables/``, to ``published_dir`` under ``results/``): ``sweep.json`` (every point, every record's status and metrics),
 ``sweep.md`` (one table per axis, failure onsets, knees), ``<axis>.png`` (CD ratio, failure rate
 and time against the axis value per method), ``README.md`` (the command), ``config.yaml``.
 """
@@ -280,6 +281,7 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
     for i, pt in enumerate(points, 1):
         tcfg = pt["table"]
         tcfg.out_dir = str(out / "tables" / pt["setting"])
+        tcfg.publish = False  # a point's table is part of this sweep's folder, never results/ on its own
         tcfg.progress = bool(cfg.get("progress", True))
         log.info("[%d/%d] %s = %s -> %s", i, len(points), pt["axis"], pt["value"], tcfg.out_dir)
         cmd = f"dss-sweep study={study.name} (axis {pt['axis']} = {pt['value']})"
@@ -325,6 +327,11 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         "record), one PNG per axis, `config.yaml`, `tables/<setting>/` (each point's dss-denoise-table "
         "output: `table.md`, `records/`; the case clouds, outputs and DSS runs are not in git).\n"))
     result["markdown"] = md
+    if cfg.get("publish", False):
+        from experiments import outputs
+
+        names = ["sweep.md", "sweep.json", "README.md", "config.yaml", *(f"{ax['axis']}.png" for ax in axes_res)]
+        result["published"] = [str(p) for p in outputs.publish_files(out, Path(str(cfg.published_dir)), names)]
     return result
 
 
@@ -333,6 +340,8 @@ def _main(cfg: DictConfig) -> None:
     res = run(cfg, command=shlex.join(["dss-sweep", *sys.argv[1:]]))
     print(res["markdown"])
     print(f"sweep: {Path(str(cfg.out_dir)) / 'sweep.md'} ({res['time_s']:.0f} s)")
+    if res.get("published"):
+        print(f"published to {cfg.published_dir}: {', '.join(Path(p).name for p in res['published'])}")
 
 
 def main() -> None:

@@ -117,6 +117,8 @@ class Pix2PixModule(L.LightningModule):
             ``trainer.max_epochs`` in halves.
         train_crop_size: the image size the model is trained at (recorded into exports).
         num_grid_images: images per validation grid.
+        max_grid_files: PNG grids kept in ``<run dir>/val_grids/`` (the first and the newest; 0: write
+            none). A short run validates hundreds of times; the loggers still get every grid.
         name: preset name (recorded into exports).
         lambda_coverage: weight of the coverage head's cross-entropy (generators with one).
         init_from: warm-start the generator's weights from this ``.ckpt`` or ``.onnx`` file.
@@ -136,6 +138,7 @@ class Pix2PixModule(L.LightningModule):
         n_epochs_decay: int | None = None,
         train_crop_size: int | None = None,
         num_grid_images: int = 4,
+        max_grid_files: int = 8,
         name: str = "custom",
         lambda_coverage: float = 10.0,
         init_from: str | None = None,
@@ -328,8 +331,14 @@ class Pix2PixModule(L.LightningModule):
         step, epoch = self.global_step, self.current_epoch
         # trainer.validate() after fit (dss-train validates the best checkpoint) gets its own name
         stem = f"epoch{epoch:03d}-step{step:07d}" if self.trainer.state.fn == "fit" else f"validate-step{step:07d}"
-        path = Path(self.trainer.default_root_dir) / "val_grids" / f"{stem}.png"
-        atomic_write_bytes(path, _png_bytes(grid))
+        keep = int(self.hparams.get("max_grid_files", 8))
+        if keep > 0:
+            folder = Path(self.trainer.default_root_dir) / "val_grids"
+            atomic_write_bytes(folder / f"{stem}.png", _png_bytes(grid))
+            # names sort by epoch and step; keep the first grid (the starting point) and the newest
+            grids = sorted(folder.glob("*.png"))
+            for old in grids[1:len(grids) - keep + 1] if len(grids) > keep else []:
+                old.unlink(missing_ok=True)
         for logger in self.loggers:
             try:
                 if hasattr(logger, "log_image"):  # W&B

@@ -196,7 +196,7 @@ def test_generated_cases_and_paths(tmp_path):
     assert dt.resolve_repo_path("/abs/x.ply") == Path("/abs/x.ply")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("denoise_table")
-    assert cfg.out_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
+    assert cfg.published_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
     labels = dt.method_list(cfg)
     assert labels[-6:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle", "dss_pix2pix_fast",
                            "dss_identity_fast"] and "cgal_jet" in labels

@@ -96,6 +96,7 @@ def test_onnx_checker_and_dynamic_axes(exported):
     dims = [d.dim_param or d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
     assert dims == ["batch", 3, "height", "width"]
     assert model.graph.input[0].name == "noisy" and model.graph.output[0].name == "denoised"
+    assert path.stat().st_mode & 0o044 == 0o044  # readable by others (not mkstemp's 0600)
 
 
 def test_metadata_round_trip(exported):

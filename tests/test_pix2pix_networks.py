@@ -321,3 +321,22 @@ def test_coverage_head_learns_to_cut_the_halo():
         module, torch.utils.data.DataLoader(_disks(64), batch_size=8, shuffle=True))
     cut, kept = rates()
     assert cut > 0.8 and kept > 0.95, (cut, kept)
+
+
+def test_validation_grids_kept_on_disk_are_capped(tmp_path):
+    """A short run validates hundreds of times: val_grids/ keeps the first grid and the newest
+    max_grid_files - 1, the rest are deleted as new ones come (the loggers still get each)."""
+    from types import SimpleNamespace
+
+    from pix2pix.module import Pix2PixModule
+
+    m = Pix2PixModule(ResNetGenerator(ngf=4, n_blocks=1), None, num_grid_images=1, max_grid_files=3)
+    state = SimpleNamespace(fn="fit")
+    m._val_grid = tuple(torch.zeros(1, 3, 8, 8) for _ in range(3))
+    for epoch in range(6):
+        m._trainer = SimpleNamespace(global_rank=0, default_root_dir=str(tmp_path), state=state, loggers=[],
+                                     global_step=10 * epoch, current_epoch=epoch)
+        m._save_grid()
+    kept = sorted(p.name for p in (tmp_path / "val_grids").glob("*.png"))
+    assert kept == ["epoch000-step0000000.png", "epoch004-step0000040.png", "epoch005-step0000050.png"]
+    assert (tmp_path / "val_grids" / kept[0]).stat().st_mode & 0o044 == 0o044

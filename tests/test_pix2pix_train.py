@@ -365,6 +365,7 @@ def test_run_dir_contents_and_export(trained_run):
     grids = sorted((out / "val_grids").glob("epoch*.png"))
     assert len(grids) == 2  # one per validation epoch
     assert len(list((out / "val_grids").glob("validate-*.png"))) == 1  # the best checkpoint's validation
+    assert (out / "denoiser.onnx").stat().st_mode & 0o044 == 0o044 and grids[0].stat().st_mode & 0o044 == 0o044
     import matplotlib.image
 
     img = matplotlib.image.imread(grids[-1])
@@ -448,7 +449,7 @@ def _ranks(dump: Path) -> list[dict]:
     return [torch.load(dump / f"rank{r}.pt", map_location="cpu", weights_only=False) for r in (0, 1)]
 
 
-@pytest.mark.slow  # two training processes, twice (about a minute on 2 cores): pytest -m slow
+@pytest.mark.slow  # two training processes, about two minutes on two cores
 def test_ddp_on_two_cpu_processes_agrees_and_resumes(pairs_root, tmp_path):
     """Lightning DDP (gloo) with 2 processes: both ranks end with the same weights and step, and
     the checkpoint resumes under DDP to the planned step with the ranks still in agreement."""

@@ -325,7 +325,7 @@ def test_spatial_sort_changes_nothing_but_speed(backend, request):
 
 
 def test_cpp_morton_order_equals_the_torch_one(cpp_backend):
-    """The C++ Z-order permutation (dss_cpu.cpp morton_order, taken by spatial_order on CPU float32)
+    """The C++ Z-order permutation (ordering_cpu.cpp morton_order, taken by spatial_order on CPU float32)
     equals morton_codes + stable argsort exactly: flat and elongated boxes (the per-axis scale),
     exact duplicates (equal codes keep their index order), a single point, and points on the box's
     far faces (the clamp to 1023)."""
@@ -477,7 +477,7 @@ def test_cpp_projection_backward_equals_torch_autograd(cpp_backend):
 
 
 def test_vector_projection_gives_the_scalar_bits(cpp_backend):
-    """The projection kernels' AVX2 loops (dss_cpu.cpp project_forward_avx2 and
+    """The projection kernels' AVX2 loops (projection_cpu.cpp project_forward_avx2 and
     project_backward_avx2: eight points side by side, the branches turned into selects) give the
     baseline loops' packed splats and gradients bit for bit, including culled splats, points
     behind the near plane (zero gradient) and a point count that is not a multiple of the vector

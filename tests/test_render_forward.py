@@ -220,7 +220,7 @@ def test_points_and_cameras_on_different_devices_are_refused():
 
 def test_reused_output_blocks_are_fully_rewritten(cpp_backend):
     """The C++ kernels hand out parked output blocks again once nothing refers to them
-    (dss_cpu.cpp pooled_empty). A dense render followed by a sparse one of the same size must
+    (cpu_runtime.cpp pooled_empty). A dense render followed by a sparse one of the same size must
     still give the sparse render's cache: every slot not written by a splat is -1 / inf / 0 and
     the mask false, as the reference rasteriser's."""
     from dss import _ext
@@ -341,7 +341,7 @@ def test_cpp_sun_shader_matches_the_torch_one(dtype, cpp_backend):
 
 @pytest.mark.parametrize("K,C", [(5, 3), (5, 1), (5, 0), (1, 3), (3, 2), (8, 1)])
 def test_vector_rasteriser_gives_the_scalar_bits(K, C, cpp_backend):
-    """The AVX2 tile loop (dss_cpu.cpp tile_fragments_avx2: 16 pixels' cutoff and top-K gate
+    """The AVX2 tile loop (rasterize_cpu_avx2.h tile_fragments_avx2: 16 pixels' cutoff and top-K gate
     tests at once, rows skipped when every list in them is full and closer) builds exactly the
     scalar loop's caches and images, at every vector level (level 2 adds the AVX-512 build of the
     binning's box scan). The scene has many layers per pixel (full lists, the gate
@@ -425,7 +425,7 @@ def _splat_with_a_pixel_on_its_ellipse(rng, i: int, j: int, row_minimum: bool, t
 @pytest.mark.parametrize("level", [2, 1, 0], ids=["avx512", "avx2", "scalar"])
 def test_tightened_boxes_keep_pixels_on_the_cutoff_ellipse(level, cpp_backend):
     """The C++ binning shrinks each splat's box to the rows and columns that can hold a pixel with
-    0.5 q <= cutoff (dss_cpu.cpp tighten_box: the form's minimum over a row or a column, with a
+    0.5 q <= cutoff (splat_math.h tighten_box: the form's minimum over a row or a column, with a
     margin for quad()'s float32 rounding); the reference tests every pixel of the padded box. Each
     splat has one pixel centre on its cutoff ellipse where the form is minimal over that pixel's
     row or column (_splat_with_a_pixel_on_its_ellipse). The caches must be identical and hold most

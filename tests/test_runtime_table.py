@@ -155,98 +155,6 @@ def test_first_views_match_dss_bench_cameras():
         torch.testing.assert_close(a, b)
 
 
-@pytest.mark.slow
-def test_ab_kernels_times_two_builds_on_captured_inputs(tmp_path, cpp_backend):
-    """experiments.ab_kernels builds HEAD's and the working tree's kernel source side by side
-    and times one kernel on the inputs captured from a real step (two builds: ~1.5 min)."""
-    from experiments import ab_kernels
-
-    out = tmp_path / "ab.json"
-    r = ab_kernels.run(["--kernel", "blend_backward", "--base", "HEAD", "--points", "1500", "--views", "2",
-                        "--image-size", "32", "--reps", "3", "--skip", "1", "--evict-mb", "2", "--level", "1",
-                        "--out", str(out)])
-    assert set(r["median_ms"]) == {"base", "work"} and all(v > 0 for v in r["median_ms"].values())
-    # --level: both builds at that vector level (capped at what this CPU has)
-    from dss import _ext
-
-    level = min(1, _ext.load_cpu().max_vector_level())
-    assert r["vector_level"] == {"base": level, "work": level}
-    assert len(r["runs_ms"]["base"]) == 3 and r["speedup"] > 0
-    assert json.loads(out.read_text())["kernel"] == "blend_backward" and r["evict_mb"] == 2
-    with pytest.raises(SystemExit, match="git show"):
-        ab_kernels.git_source("no-such-revision")
-
-
-def test_ab_steps_child_times_one_kind_of_step(cpp_backend):
-    """experiments.ab_steps' child (what each alternating process runs) times render + SMAPE and
-    backward for the kind asked and reports medians of the measured steps."""
-    from experiments import ab_steps
-
-    r = ab_steps.run(["--child", "--kinds", "position", "--points", "400", "--views", "2", "--image-size", "32",
-                      "--warmup", "0", "--steps", "3"])
-    assert len(r["runs_ms"]) == 3 and all(f > 0 and b > 0 for f, b in r["runs_ms"])
-    assert r["step_ms"] == pytest.approx(sorted(f + b for f, b in r["runs_ms"])[1])
-    with pytest.raises(SystemExit):
-        ab_steps.run(["--rounds", "2"])  # no --base
-
-
-def test_ab_step_overheads_puts_each_earlier_version_back_only_for_its_steps(cpp_backend):
-    """experiments.ab_step_overheads times every variant and leaves the current code in place."""
-    import dss.render as R
-    from experiments import ab_step_overheads
-
-    before = (R._KernelBlend.forward, R._PermuteRows.forward, R._PermuteRows.backward, R.all_finite, R.SunLights)
-    r = ab_step_overheads.measure("position", rounds=1, n_points=3000, views=2, size=32)
-    assert set(r) == {"current", "copy", "fancy_index", "isfinite", "lights"}
-    assert all(v["forward_ms"] > 0 and v["backward_ms"] > 0 for v in r.values())
-    assert r["current"]["saved_ms_by_current"] == 0
-    assert (R._KernelBlend.forward, R._PermuteRows.forward, R._PermuteRows.backward, R.all_finite,
-            R.SunLights) == before
-
-
-@pytest.mark.slow
-def test_ab_steps_in_process_alternates_two_kernel_builds(tmp_path, cpp_backend):
-    """experiments.ab_steps --in-process builds HEAD's and the working tree's C++ kernel side by
-    side (two builds: ~1.5 min), runs every step with each, restores the package's kernel, and
-    refuses a base whose Python under dss/ differs."""
-    import subprocess
-
-    from dss import _ext
-    from experiments import ab_steps, bench_common
-
-    before = (_ext.load_cpu, _ext.loaded_cpu)
-    out = tmp_path / "steps.json"
-    r = ab_steps.run(["--in-process", "--base", "HEAD", "--kinds", "normal", "--points", "400", "--views", "2",
-                      "--image-size", "32", "--warmup", "1", "--steps", "3", "--out", str(out)])
-    s = r["summary"]["normal"]
-    assert len(s["base"]["runs_ms"]) == 3 and len(s["work"]["runs_ms"]) == 3
-    assert s["base"]["step_ms"] > 0 and s["work"]["step_ms"] > 0 and s["speedup"] > 0
-    assert json.loads(out.read_text())["mode"] == "in-process"
-    assert (_ext.load_cpu, _ext.loaded_cpu) == before
-    first = subprocess.run(["git", "rev-list", "--max-parents=0", "HEAD"], cwd=bench_common.REPO, check=True,
-                           capture_output=True, text=True).stdout.split()[0]
-    with pytest.raises(SystemExit, match=r"only the C\+\+ kernel"):
-        ab_steps.run(["--in-process", "--base", first, "--kinds", "normal"])
-
-
-@pytest.mark.slow
-def test_ab_steps_alternates_two_revisions(tmp_path, cpp_backend):
-    """experiments.ab_steps checks HEAD out into a worktree, runs both versions' steps in child
-    processes with their own kernel builds (two builds: ~2-3 min) and removes the worktree."""
-    import subprocess
-
-    from experiments import ab_steps, bench_common
-
-    out = tmp_path / "steps.json"
-    r = ab_steps.run(["--base", "HEAD", "--kinds", "normal", "--points", "400", "--views", "2", "--image-size", "32",
-                      "--rounds", "1", "--warmup", "0", "--steps", "2", "--out", str(out)])
-    s = r["summary"]["normal"]
-    assert s["base"]["step_ms"] > 0 and s["work"]["step_ms"] > 0 and s["speedup"] > 0
-    assert len(r["children"]["normal"]["base"]) == 1 and json.loads(out.read_text())["base"] == "HEAD"
-    worktrees = subprocess.run(["git", "worktree", "list"], cwd=bench_common.REPO, capture_output=True, text=True).stdout
-    assert "dss_ab_steps_" not in worktrees
-
-
 def test_measured_rates_are_peaks_of_repeated_calls():
     """perf_counts' floor rates: the fastest call of each measurement (a peak, not the mean over
     a noisy second), and the copy bandwidth the faster of the one-thread and all-thread copies."""
@@ -270,7 +178,7 @@ def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
     (the same counted work, one formula); --gpu-rates refuses to run without a GPU."""
     from experiments import perf_counts
 
-    counts = json.loads(Path("docs/perf_counts.json").read_text())
+    counts = json.loads(Path("results/bench/perf_counts.json").read_text())
     rows = perf_counts.gpu_floors(counts, rt.H100_PUBLISHED)
     for w, r in zip(counts["workloads"], rows):
         assert r["points"] == w["points"]
@@ -282,11 +190,11 @@ def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
             perf_counts.main(["--gpu-rates", "unused.json"])
 
 
-H100_RUN = Path(__file__).resolve().parents[1] / "results" / "bench" / "gpu" / "s40_h100"
+H100_RUN = Path(__file__).resolve().parents[1] / "results" / "bench" / "gpu" / "h100"
 
 
 def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
-    """--from-json --gpu-rates: session 40's H100 table with floors on that GPU's measured rates;
+    """--from-json --gpu-rates: the shipped H100 table with floors on that GPU's measured rates;
     the measurements are kept as they were, the floors equal perf_counts' own on those rates."""
     from experiments import perf_counts
 
@@ -317,7 +225,7 @@ def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
 
 def test_gpu_rates_of_another_device_are_refused(tmp_path):
     """The H200's rates cannot be the floors of the H100's CUDA column."""
-    h200_rates = H100_RUN.parent / "s40_h200" / "gpu_rates.json"
+    h200_rates = H100_RUN.parent / "h200" / "gpu_rates.json"
     with pytest.raises(SystemExit, match="gpu_rates.json: rates measured on 'NVIDIA H200'.*another device"):
         rt.run(["--from-json", str(H100_RUN / "runtime_table_cuda.json"), "--gpu-rates", str(h200_rates),
                 "--out", str(tmp_path / "rt")])
@@ -325,11 +233,15 @@ def test_gpu_rates_of_another_device_are_refused(tmp_path):
 
 
 def test_runtime_chart_reads_tables_of_older_versions(tmp_path):
-    """A CPU table from before the step floors (session 21's code): ratios on its forward floor."""
+    """A CPU table without per-step floors (only the forward's, cpu_floor_ms): ratios on that floor."""
     from experiments.figures import runtime_chart as rc
 
-    old = Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table_cpp_6647acd.json"
-    table = json.loads(old.read_text())
+    table = json.loads((Path(__file__).resolve().parents[1] / "results" / "bench" / "runtime_table.json").read_text())
+    for f in table["floor"]["workloads"]:
+        for k in ("cpu_step_floor_ms", "step_floor_counts_backward", "h100_published_step_floor_ms"):
+            f.pop(k, None)
+    old = tmp_path / "old_table.json"
+    old.write_text(json.dumps(table))
     data = rc.run(["--cpu", str(old), "--cuda", str(H100_RUN / "runtime_table_cuda.json"), "--out", str(tmp_path / "c")])
     for w, f in zip(data["workloads"], table["floor"]["workloads"]):
         floors = f.get("cpu_step_floor_ms") or {k: f["cpu_floor_ms"] for k in rt.KINDS}
@@ -355,7 +267,7 @@ def test_bad_gpu_rates_and_tables_are_refused_with_their_names(tmp_path):
 
 
 def test_runtime_chart_plots_the_tables_numbers(tmp_path):
-    """dss-fig-runtime on the shipped CPU table and session 40's H100 table: a PNG, and a JSON whose
+    """dss-fig-runtime on the shipped CPU table and the shipped H100 table: a PNG, and a JSON whose
     numbers are the tables' own (step = forward + backward; ratios over each table's floors)."""
     from experiments.figures import runtime_chart as rc
 
@@ -391,179 +303,3 @@ def test_runtime_chart_refuses_tables_without_the_column(tmp_path):
     with pytest.raises(SystemExit, match="its cuda column was not measured"):
         rc.load_table(cpu_path, "cuda")
 
-
-def test_ab_denoise_alternates_versions_and_reads_the_jobs_wall_time(monkeypatch, tmp_path):
-    """experiments.ab_denoise without running jobs: the overrides after -- reach both versions,
-    base and working tree alternate, and the medians and ratio come from the jobs' own lines."""
-    import contextlib
-    import subprocess
-
-    import experiments.ab_denoise as A
-
-    calls = []
-
-    @contextlib.contextmanager
-    def fake_worktree(base, prefix):
-        yield {"base": (tmp_path / "base", tmp_path / "eb"), "work": (tmp_path / "work", tmp_path / "ew")}
-
-    def fake_run(cmd, cwd, env, capture_output, text):
-        calls.append((Path(cwd).name, cmd))
-        n = len([c for c in calls if c[1] != "build"])
-        wall = 30.0 + n if Path(cwd).name == "base" else 10.0 + n
-        log = (f"[x][INFO] - wall time {wall:.1f} s; outputs in y\n"
-               "[paper protocol] Chamfer x1e4: input 1.467 -> denoised 0.326\n")
-        return subprocess.CompletedProcess(cmd, 0, stdout=log, stderr="")
-
-    monkeypatch.setattr(A, "base_worktree", fake_worktree)
-    monkeypatch.setattr(A, "git_short", lambda rev: "abc1234")
-    monkeypatch.setattr(A, "build_kernel", lambda repo, ext: calls.append((Path(repo).name, "build")))
-    monkeypatch.setattr(A.subprocess, "run", fake_run)
-    res = A.run(["--base", "HEAD~1", "--rounds", "3", "--out", str(tmp_path / "r.json"), "--", "noise=0.01"])
-    assert calls[:2] == [("base", "build"), ("work", "build")]  # both kernels built before timing
-    calls = calls[2:]
-    assert [c[0] for c in calls] == ["base", "work"] * 3
-    assert all(c[1][-1] == "noise=0.01" for c in calls)
-    assert res["median_wall_s"] == {"base": 33.0, "work": 14.0}  # runs 1/3/5 and 2/4/6
-    assert res["speedup"] == pytest.approx(33.0 / 14.0)
-    assert res["runs"]["work"][0]["chamfer_x1e4"]["paper"] == {"input": 1.467, "denoised": 0.326}
-    assert (tmp_path / "r.json").exists()
-
-
-def test_tight_boxes_hold_every_passing_pixel_and_are_smaller():
-    """perf_counts.tight_bbox (the kernels' box shrinking, for counting): on a projected random
-    scene every pixel of the reference box that passes the cutoff test (q in float32, in the
-    kernels' order) lies in the tightened box, the tightened boxes are inside the reference ones,
-    and they hold fewer tile rows and pixels (box_counts)."""
-    from scenes import random_scene
-
-    from dss.rasterizer.reference import bbox, splat_weight
-    from dss.splats import project_splats
-    from experiments import perf_counts
-
-    pts, nrm, cams, sigma, _ = random_scene(5, n=400, views=2, size=(40, 56))
-    pk = project_splats(pts, nrm, cams, sigma * 2, 1.0).packed.float()
-    H, W = cams.image_size
-    ref_box = bbox(pk, H, W)
-    tight = perf_counts.tight_bbox(pk, H, W, 1.0)
-    valid = pk[..., 9] > 0
-    passing = 0
-    for v, k in torch.nonzero(valid).tolist():
-        j0, j1, i0, i1 = (int(b[v, k]) for b in ref_box)
-        ii, jj = torch.meshgrid(torch.arange(i0, i1 + 1), torch.arange(j0, j1 + 1), indexing="ij")
-        q, _ = splat_weight(pk[v, k].expand(ii.numel(), -1), jj.flatten().float() + 0.5, ii.flatten().float() + 0.5)
-        keep = 0.5 * q <= 1.0
-        tj0, tj1, ti0, ti1 = (int(b[v, k]) for b in tight)
-        assert j0 <= tj0 and tj1 <= j1 and i0 <= ti0 and ti1 <= i1
-        ik, jk = ii.flatten()[keep], jj.flatten()[keep]
-        assert ((ik >= ti0) & (ik <= ti1) & (jk >= tj0) & (jk <= tj1)).all(), (v, k)
-        passing += int(keep.sum())
-    assert passing > 1000
-    c = perf_counts.box_counts(pk, H, W, 1.0)
-    assert c["tight"]["tile_rows"] < 0.8 * c["bbox"]["tile_rows"]
-    assert c["tight"]["pixel_tests"] < 0.8 * c["bbox"]["pixel_tests"]
-    assert c["tight"]["tile_entries"] <= c["bbox"]["tile_entries"]
-
-
-def test_ab_kernels_cuts_the_arguments_to_the_signature(cpp_backend):
-    """A base build without a trailing parameter (blend_backward before its optional mask) is
-    called without it: accepted_args reads the pybind signature's parameter count."""
-    from dss import _ext
-    from experiments.ab_kernels import accepted_args
-
-    mod = _ext.load_cpu()
-    args = list(range(12))
-    assert accepted_args(mod.blend_backward, args) == args[:9]  # ..., merge, mask=None
-    assert accepted_args(mod.rasterize_forward, args) == args[:8]
-
-    def undocumented(*a):
-        return a
-
-    assert accepted_args(undocumented, args) == args  # no signature to read: everything
-
-
-def test_vector_op_rates_compiles_and_times_each_operation(tmp_path):
-    from experiments import vector_op_rates
-
-    out = tmp_path / "rates.json"
-    res = vector_op_rates.run(["--iters", "300000", "--out", str(out)])
-    assert json.loads(out.read_text())["ops"] == res["ops"]
-    assert res["clock_ghz"] > 0.1
-    if not res["avx2"]:
-        assert res["ops"] == []
-        return
-    lanes = {8, 16} if res["avx512f"] else {8}
-    assert {(o["op"], o["lanes"]) for o in res["ops"]} == {(op, n) for op in ("div", "sqrt", "rcp", "mul") for n in lanes}
-    for o in res["ops"]:
-        assert 0 < o["throughput_ns"] < 1e3 and 0 < o["latency_ns"] < 1e3
-        # one dependent chain cannot beat eight overlapping ones: a compiler that hoisted or fused
-        # the operations would show up here
-        if o["op"] in ("div", "sqrt"):
-            assert o["latency_ns"] > o["throughput_ns"]
-
-
-def test_kernel_variants_apply_to_the_shipped_source():
-    """Every named variant of experiments.kernel_variants (and the branch log) still applies to
-    dss_cpu.cpp: a kernel change that moves an anchor fails here, not in a later timing run."""
-    from experiments import kernel_variants as kv
-
-    text = (kv.REPO / kv.SOURCE).read_text()
-    assert {"window_twice", "flagged_rows_as_nok", "no_new_front", "screen_band_order"} <= set(kv.VARIANTS)
-    for v in [*kv.VARIANTS.values(), kv.BRANCH_LOG]:
-        assert kv.apply_variant(text, v) != text, v.name
-    # the branch log names every site it logs, and logs each site at least once
-    logged = kv.apply_variant(text, kv.BRANCH_LOG)
-    for site in range(len(kv.BRANCH_SITES)):
-        assert f"BL({site}, " in logged, site
-    assert f"BL({len(kv.BRANCH_SITES)}, " not in logged
-
-
-def test_kernel_variants_refuse_a_stale_anchor():
-    from experiments import kernel_variants as kv
-
-    stale = kv.Variant("stale", "", True, (("no such text", "x"),))
-    with pytest.raises(kv.VariantError, match="'stale' does not apply to kernel.cpp: not found"):
-        kv.apply_variant("int main() {}", stale, "kernel.cpp")
-    twice = kv.Variant("twice", "", True, (("a;", "b;"),))
-    with pytest.raises(kv.VariantError, match="found 2 times"):
-        kv.apply_variant("a; a;", twice)
-    assert kv.apply_variant("a; c;", twice) == "b; c;"
-    with pytest.raises(SystemExit, match="unknown variant"):
-        kv.run(["--variants", "no_such_variant"])
-
-
-def test_kernel_variants_gshare_replay_learns_a_pattern(tmp_path):
-    """The branch-log replay: an alternating branch defeats a predictor without history and is
-    learnt with it; an always-taken branch costs at most a warm-up miss."""
-    from experiments import kernel_variants as kv
-
-    n = 4000
-    codes = []
-    for i in range(n):
-        codes.append(0 << 1 | (i & 1))  # site 0: taken, not taken, ...
-        codes.append(1 << 1 | 1)  # site 1: always taken
-    rep = kv.branch_report(torch.tensor(codes, dtype=torch.uint8), [0, 4], tmp_path)
-    s0, s1 = rep["sites"][0], rep["sites"][1]
-    assert rep["outcomes"] == 2 * n and s0["outcomes"] == n and s0["taken"] == n // 2 and s1["taken"] == n
-    assert s0["site"] == kv.BRANCH_SITES[0]
-    assert s0["gshare_misses"]["0"] >= n // 3  # a 2-bit counter cannot follow an alternation
-    assert s0["gshare_misses"]["4"] <= 10 and s1["gshare_misses"]["0"] <= 2
-    assert rep["best_history"] == 4 and rep["total_misses"]["4"] < rep["total_misses"]["0"]
-    assert all(s["outcomes"] == 0 for s in rep["sites"][2:])
-
-
-@pytest.mark.slow
-def test_kernel_variants_times_and_checks_bits(tmp_path, cpp_backend):
-    """Two variant builds and the shipped one on a small captured step (~2 min): an exact variant
-    keeps the output bit for bit; the result names each variant's speed-up."""
-    from experiments import kernel_variants as kv
-
-    out = tmp_path / "var.json"
-    r = kv.run(["--variants", "clamp_branchless", "window_twice", "--points", "1500", "--views", "2",
-                "--image-size", "64", "--reps", "3", "--skip", "1", "--evict-mb", "2", "--threads", "1",
-                "--out", str(out)])
-    assert set(r["variants"]) == {"clamp_branchless", "window_twice"}
-    for row in r["variants"].values():
-        assert row["exact"] and row["same_bits"] and row["error"] is None
-    # the source timed is named (tests never check wall time)
-    assert isinstance(r["source_modified"], bool) and len(r["source_sha256"]) == 16
-    assert json.loads(out.read_text())["shipped_median_ms"] == r["shipped_median_ms"]

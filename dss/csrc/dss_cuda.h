@@ -1,5 +1,5 @@
-// Host launchers of the DSS CUDA kernels (dss_cuda.cu), called by the torch glue
-// (dss_cuda_bind.cpp). Raw pointers and the CUDA runtime only, so dss_cuda.cu compiles with
+// Host launchers of the DSS CUDA kernels (one *_cuda.cu file per stage), called by the torch glue
+// (dss_cuda_bind.cpp). Raw pointers and the CUDA runtime only, so the kernels compile with
 // plain nvcc, without torch headers (tests/test_cuda_build.py does exactly that).
 //
 // Layouts (all row-major, contiguous):
@@ -67,14 +67,14 @@ cudaError_t launch_rasterize_tiles(const float* packed, int64_t V, int64_t N, in
                                    int32_t* idx, float* depth, float* rho, float* images, bool* mask,
                                    cudaStream_t stream);
 
-// Floats in one pixel record of the visibility gradient (the layout of dss_cpu.cpp's records);
+// Floats in one pixel record of the visibility gradient (the layout of visibility_backward_cpu.h's records);
 // used by the kernels (device) and by the callers that allocate the workspace (host).
 #ifdef __CUDACC__
 __host__ __device__
 #endif
 constexpr int64_t vis_record_floats(int K, int C) { return 6 + C + 3 * (int64_t)K; }
 
-// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward): grad_packed (V, N, 10)
+// Backward of Eq. sumI for the smooth terms (blend_backward_cpu.cpp): grad_packed (V, N, 10)
 // (fields 0-5; 6-9 zero) and grad_attrs (V, N, C) from grad = dL/dimages (V, H, W, C) and the
 // forward's cache and images. One thread per (view, splat) over the pixels of its box.
 cudaError_t launch_blend_backward(const float* packed, const float* attrs, const int32_t* idx, const float* depth,
@@ -83,11 +83,11 @@ cudaError_t launch_blend_backward(const float* packed, const float* attrs, const
                                   cudaStream_t stream);
 
 // Visibility gradient: one thread per (view, pixel) fills records (V * H * W *
-// vis_record_floats(K, C) f32, workspace: the pixel records of dss_cpu.cpp), then one thread per (view, point): partial
+// vis_record_floats(K, C) f32, workspace: the pixel records of visibility_backward_cpu.h), then one thread per (view, point): partial
 // (V, N, 3) f64 receives R_v^T acc_v, the world-space contribution of view v (zero where the
 // splat is not valid). mode 0: dss, 1: rbf.
 // The visibility kernel's walk over a window (both give the same bits; see visibility_kernel in
-// dss_cuda.cu), from the environment variable DSS_CUDA_VIS_ORDER: 0 for "partials" (or unset, the
+// visibility_backward_cuda.cu), from the environment variable DSS_CUDA_VIS_ORDER: 0 for "partials" (or unset, the
 // default), 1 for "rows", -1 for any other value (launch_visibility then returns
 // cudaErrorInvalidValue).
 int visibility_order();

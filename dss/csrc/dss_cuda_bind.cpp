@@ -1,5 +1,5 @@
-// Torch glue of the DSS CUDA kernels (dss_cuda.cu): checks, allocation, the binning scan and the
-// launches on the current CUDA stream. Same function names and signatures as dss_cpu.cpp, taking
+// Torch glue of the DSS CUDA kernels (the *_cuda.cu files, dss_cuda.h): checks, allocation, the binning scan and the
+// launches on the current CUDA stream. Same function names and signatures as the CPU module (dss_cpu.h), taking
 // CUDA tensors, so the two modules are interchangeable.
 //
 // Built by dss/_ext_cuda.py with torch.utils.cpp_extension.load on a machine with a GPU. With
@@ -139,7 +139,7 @@ CacheInputs cache_inputs(torch::Tensor packed, torch::Tensor attrs, torch::Tenso
 
 }  // namespace
 
-// Backward of Eq. sumI for the smooth terms (dss_cpu.cpp blend_backward): dL/dpacked (V,N,10)
+// Backward of Eq. sumI for the smooth terms (blend_backward_cpu.cpp): dL/dpacked (V,N,10)
 // (fields 0-5, the rest zero) and dL/dattrs (V,N,C) from dL/dimages and the forward's cache.
 std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx,
                                           torch::Tensor depth, torch::Tensor rho, torch::Tensor images,
@@ -159,7 +159,7 @@ std::vector<torch::Tensor> blend_backward(torch::Tensor packed, torch::Tensor at
   return {gpk, gat};
 }
 
-// Visibility gradient (paper Eqs. gradcase, filteredG); the rules of dss_cpu.cpp
+// Visibility gradient (paper Eqs. gradcase, filteredG); the rules of visibility_backward_cpu.h
 // visibility_backward, one thread per (view, point). Returns dL/dp (N,3) f32, world space.
 torch::Tensor visibility_backward(torch::Tensor packed, torch::Tensor attrs, torch::Tensor idx, torch::Tensor depth,
                                   torch::Tensor rho, torch::Tensor images, torch::Tensor grad, torch::Tensor R,

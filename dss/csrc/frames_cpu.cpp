@@ -16,7 +16,7 @@
 // tensors plus a batched eigh that LAPACK decomposes one matrix after another; at 20K points,
 // K = 16 that was ~27 ms of the Quickstart job's ~60 ms steps, and the backward of the
 // neighbour gather (an index_put with accumulation) another ~11 ms.
-#include <torch/extension.h>
+#include <torch/types.h>
 #include <ATen/Parallel.h>
 
 #include <algorithm>

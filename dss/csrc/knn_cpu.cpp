@@ -7,7 +7,7 @@
 // sort), the queries visited in cell order (their candidate cells stay in cache), and each query
 // scans Chebyshev rings of cells around its own until the k-th best distance lies within the
 // rings already scanned.
-#include <torch/extension.h>
+#include <torch/types.h>
 #include <ATen/Parallel.h>
 
 #include <algorithm>

@@ -1,5 +1,5 @@
-// Per-splat formulas shared by the CPU kernel (dss_cpu.cpp, vectorised loops over points) and the
-// CUDA kernel (dss_cuda.cu, a thread per point or splat): the EWA projection of one (view, point)
+// Per-splat formulas shared by the CPU kernels (*_cpu.cpp, vectorised loops over points) and the
+// CUDA kernels (*_cuda.cu, a thread per point or splat): the EWA projection of one (view, point)
 // (dss/splats.py project_splats) forward and backward, the splat's quadratic form, one cache
 // entry's share of the blend backward (Eq. sumI's smooth terms), and the order in which the
 // visibility gradient adds a window's contributions. float32 in the torch expressions'

@@ -1,6 +1,7 @@
 """``dss-fig-gradient1d``: the paper's 1D comparison of the DSS and RBF gradients (Fig. 1Dplot).
 
-    dss-fig-gradient1d                         # writes results/figures/gradient_1d.{png,json}
+    dss-fig-gradient1d                         # writes outputs/dss-fig-gradient1d/<time>/gradient_1d.{png,json}
+    dss-fig-gradient1d --publish               # writes results/figures/gradient_1d.{png,json} (tracked)
     dss-fig-gradient1d --out /tmp/f --steps 50 --distance-step 1 --optimizers adam:0.01
 
 Scene: one white splat facing an axis-aligned camera (focal 100 px, depth Z = 2, so one world unit
@@ -41,6 +42,7 @@ import torch
 from tqdm import tqdm
 
 from dss.io_utils import atomic_savefig, atomic_write_json
+from experiments import outputs
 from dss.render import RenderSettings, render, resolve_backend
 
 from . import (
@@ -315,7 +317,7 @@ def main(argv=None) -> int:
     """Console entry point; returns the exit status (the numbers are in the JSON; ``run`` returns them)."""
     ap = argparse.ArgumentParser(prog="dss-fig-gradient1d", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="results/figures", help="output folder (default: results/figures)")
+    outputs.add_arguments(ap, published="results/figures")
     ap.add_argument("--sigmas", type=float, nargs="+", default=[0.05, 0.1, 0.5], help="sigma_k values (world units)")
     ap.add_argument("--radius", type=float, default=9.0, help="ellipse radius (px) of the fixed-ellipse row")
     ap.add_argument("--cutoff", type=float, default=1.0, help="cutoff C of the second row")
@@ -332,7 +334,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.manual_seed(0)
-    run(Path(args.out), tuple(args.sigmas), args.radius, args.cutoff, args.max_distance, args.distance_step,
+    run(outputs.folder(args, "dss-fig-gradient1d"), tuple(args.sigmas), args.radius, args.cutoff, args.max_distance, args.distance_step,
         args.steps, args.shift, tuple(args.optimizers), args.window, args.backend, args.report_distance,
         command=command_line("dss-fig-gradient1d", argv))
     return 0

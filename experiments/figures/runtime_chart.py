@@ -1,6 +1,7 @@
 """``dss-fig-runtime``: the paper's runtime table as a chart, ours on a CPU and a GPU beside the paper's.
 
-    dss-fig-runtime        # results/bench/runtime_table.json + the H100 table -> results/bench/runtime_chart.{png,json}
+    dss-fig-runtime            # results/bench/runtime_table.json + the H100 table -> outputs/dss-fig-runtime/<time>/
+    dss-fig-runtime --publish  # -> results/bench/runtime_chart.{png,json} (the tracked chart)
     dss-fig-runtime --cpu A.json --cuda B.json --out /tmp/chart
 
 Reads the JSONs that ``dss-runtime-table`` writes (it measures nothing itself): ``--cpu``, a table
@@ -11,7 +12,7 @@ with the CUDA column measured (on a GPU machine; ``experiments/gpu_check.sh tabl
   the paper reports it: averaged over the run's position and normal steps with the paper's step
   counts as weights. The paper's GTX 1080Ti figures are the published ones (Table tab:speed);
 - right, per workload and kind of step, the measured step over its counted floor
-  (``experiments/perf_counts``: the work over the device's peak rates), with issue 5's 4x line
+  (``experiments/perf_counts``: the work over the device's peak rates), with the 4x target line
   for the CPU. A ratio is only as good as the floor's rates: the JSON says which rates each
   table used (the CPU's measured; the GPU's measured with ``--gpu-rates``, else the H100's
   published spec).
@@ -28,12 +29,14 @@ from pathlib import Path
 
 from dss.io_utils import atomic_savefig, atomic_write_json
 
+from experiments import outputs
+
 from . import command_line, setup_matplotlib
 
 log = logging.getLogger("dss-fig-runtime")
 
 KINDS = ("position", "normal")
-CPU_FLOOR_FACTOR = 4.0  # issue 5: a 20K step on 2 CPU cores within 4x of its counted floor
+CPU_FLOOR_FACTOR = 4.0  # the target: a 20K step on 2 CPU cores within 4x of its counted floor
 SERIES = (  # (key in the chart's JSON, label, colour)
     ("paper_1080ti", "paper, GTX 1080Ti (published)", "#9e9e9e"),
     ("reference", "ours, PyTorch reference (CPU)", "#f2b134"),
@@ -192,10 +195,12 @@ def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cpu", default="results/bench/runtime_table.json",
                     help="dss-runtime-table JSON with the C++ column (default: the shipped 2-thread table)")
-    ap.add_argument("--cuda", default="results/bench/gpu/s40_h100/runtime_table_cuda_measured_floors.json",
-                    help="dss-runtime-table JSON with the CUDA column (default: session 40's H100 table)")
-    ap.add_argument("--out", default="results/bench/runtime_chart", help="output prefix: <out>.png and <out>.json")
-    return ap.parse_args(argv)
+    ap.add_argument("--cuda", default="results/bench/gpu/h100/runtime_table_cuda_measured_floors.json",
+                    help="dss-runtime-table JSON with the CUDA column (default: the shipped H100 table)")
+    outputs.add_arguments(ap, published="results/bench/runtime_chart", what="output prefix: <out>.png and <out>.json")
+    args = ap.parse_args(argv)
+    args.out = str(outputs.folder(args, "dss-fig-runtime", name="runtime_chart"))
+    return args
 
 
 def run(argv=None) -> dict:

@@ -1,6 +1,7 @@
 """``dss-fig-twopoints``: two points chase two targets, DSS vs RBF gradient (paper Fig. twopoints).
 
-    dss-fig-twopoints                          # writes results/figures/two_points.{png,json}
+    dss-fig-twopoints                          # writes outputs/dss-fig-twopoints/<time>/two_points.{png,json}
+    dss-fig-twopoints --publish                # writes results/figures/two_points.{png,json} (tracked)
     dss-fig-twopoints --out /tmp/f --trials 0
 
 Scene: two white splats facing an axis-aligned camera (focal 100 px, depth Z = 2: one world unit is
@@ -32,6 +33,7 @@ import torch
 from tqdm import tqdm
 
 from dss.io_utils import atomic_savefig, atomic_write_json
+from experiments import outputs
 from dss.render import RenderSettings, render, resolve_backend
 
 from . import (
@@ -242,7 +244,7 @@ def main(argv=None) -> int:
     """Console entry point; returns the exit status (the numbers are in the JSON; ``run`` returns them)."""
     ap = argparse.ArgumentParser(prog="dss-fig-twopoints", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="results/figures", help="output folder (default: results/figures)")
+    outputs.add_arguments(ap, published="results/figures")
     ap.add_argument("--sigma", type=float, default=5.0, help="sigma_k of both rows (world units; paper: 5)")
     ap.add_argument("--radius", type=float, default=9.0, help="rendered disc radius in pixels (sets the cutoff)")
     ap.add_argument("--steps", type=int, default=48)
@@ -259,7 +261,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.manual_seed(0)
-    run(Path(args.out), args.sigma, args.radius, args.steps, args.snapshots, args.lr, args.window, args.start,
+    run(outputs.folder(args, "dss-fig-twopoints"), args.sigma, args.radius, args.steps, args.snapshots, args.lr, args.window, args.start,
         args.target, args.trials, args.trial_steps, None, args.min_separation, args.seed, args.backend,
         command=command_line("dss-fig-twopoints", argv))
     return 0

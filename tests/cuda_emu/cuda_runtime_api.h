@@ -1,6 +1,6 @@
 // CPU stand-in for the CUDA runtime, for tests only (tests/test_cuda_build.py).
 //
-// With this directory first on the include path, dss/csrc/dss_cuda.cu compiles as plain C++:
+// With this directory first on the include path, the CUDA kernels (dss/csrc/*_cuda.cu) compile as plain C++:
 // every kernel launch (DSS_LAUNCH) runs its blocks one after the other, each block's threads as
 // real std::threads with a real barrier for __syncthreads(), __shared__ arrays are function
 // statics (one block at a time), atomics are GCC atomics. Slow, but it runs the kernels' own

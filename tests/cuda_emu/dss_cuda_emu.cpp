@@ -1,8 +1,12 @@
-// dss/csrc/dss_cuda.cu compiled as C++ against the CPU stand-in of the CUDA runtime (tests only),
+// The CUDA kernels (dss/csrc/*_cuda.cu) compiled as C++ against the CPU stand-in of the CUDA runtime (tests only),
 // plus C entry points for ctypes: g++ -shared -fPIC -pthread -I tests/cuda_emu -I dss/csrc.
 #define DSS_EMU_KERNELS
 #include "cuda_runtime_api.h"
-#include "dss_cuda.cu"
+#include "blend_backward_cuda.cu"
+#include "projection_cuda.cu"
+#include "rasterize_cuda.cu"
+#include "shading_cuda.cu"
+#include "visibility_backward_cuda.cu"
 
 extern "C" {
 

@@ -1,0 +1,122 @@
+"""Table, figure and benchmark commands leave tracked files alone by default: each run writes a
+fresh outputs/<command>/<timestamp> folder under the working directory, and results/ changes only
+with --publish / publish=true."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from experiments import outputs
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF_DIR = ROOT / "conf"
+TINY_CASE = {"name": "tiny", "family": "superquadric", "index": 26, "resolution": 32}
+
+
+def _args(argv, published="results/x"):
+    ap = argparse.ArgumentParser()
+    outputs.add_arguments(ap, published=published)
+    return ap.parse_args(argv)
+
+
+def test_output_folder_choice(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    a = outputs.folder(_args([]), "cmd")
+    b = outputs.folder(_args([]), "cmd")
+    assert a.is_dir() and b.is_dir() and a != b  # two runs in one second: two folders
+    assert a.parent == Path("outputs") / "cmd"
+    assert outputs.folder(_args([]), "cmd", name="t.json").parent.parent == Path("outputs") / "cmd"
+    assert outputs.folder(_args(["--publish"]), "cmd") == Path("results/x")
+    assert outputs.folder(_args(["--out", "o"]), "cmd") == Path("o")
+    with pytest.raises(SystemExit, match="not both"):
+        outputs.folder(_args(["--out", "o", "--publish"]), "cmd")
+    assert not (tmp_path / "results").exists()
+
+
+def test_publish_files_replaces_and_removes_stale(tmp_path):
+    src, dest = tmp_path / "run", tmp_path / "pub"
+    src.mkdir()
+    (src / "a.md").write_text("new")
+    dest.mkdir()
+    (dest / "a.md").write_text("old")
+    (dest / "stale.json").write_text("{}")
+    written = outputs.publish_files(src, dest, ["a.md"], stale=["stale.json"])
+    assert [p.name for p in written] == ["a.md"] and (dest / "a.md").read_text() == "new"
+    assert not (dest / "stale.json").exists() and oct((dest / "a.md").stat().st_mode & 0o777) == "0o644"
+    with pytest.raises(FileNotFoundError):
+        outputs.publish_files(src, dest, ["missing.md"])
+
+
+def test_figure_command_writes_a_fresh_folder_by_default(tmp_path, monkeypatch):
+    from experiments.figures import two_points
+
+    monkeypatch.chdir(tmp_path)
+    assert two_points.main(["--trials", "0", "--steps", "6", "--snapshots", "0", "6"]) == 0
+    runs = list((tmp_path / "outputs" / "dss-fig-twopoints").iterdir())
+    assert len(runs) == 1 and (runs[0] / "two_points.png").is_file() and (runs[0] / "two_points.json").is_file()
+    assert not (tmp_path / "results").exists()
+
+
+def test_runtime_chart_writes_a_fresh_folder_by_default(tmp_path, monkeypatch):
+    from experiments.figures import runtime_chart
+
+    cpu = ROOT / "results" / "bench" / "runtime_table.json"
+    cuda = ROOT / "results" / "bench" / "gpu" / "h100" / "runtime_table_cuda_measured_floors.json"
+    monkeypatch.chdir(tmp_path)
+    runtime_chart.run(["--cpu", str(cpu), "--cuda", str(cuda)])
+    runs = list((tmp_path / "outputs" / "dss-fig-runtime").iterdir())
+    assert len(runs) == 1 and {p.name for p in runs[0].iterdir()} == {"runtime_chart.png", "runtime_chart.json"}
+
+
+def test_results_index_writes_the_tracked_readme_only_with_publish(tmp_path, monkeypatch):
+    from experiments.results_index import build, main
+
+    res = tmp_path / "results"
+    (res / "misc").mkdir(parents=True)
+    (res / "misc" / "x.json").write_text(json.dumps({"command": "dss-x"}))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--results", str(res)]) == 0
+    assert not (res / "README.md").exists()
+    written = list((tmp_path / "outputs" / "dss-results").glob("*/README.md"))
+    assert len(written) == 1 and written[0].read_text() == build(res)
+    assert main(["--results", str(res), "--publish"]) == 0
+    assert (res / "README.md").read_text() == build(res)
+
+
+def test_table_and_sweep_configs_default_to_fresh_folders(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        table = compose("denoise_table")
+        sweep = compose("sweep")
+    assert table.publish is False and table.published_dir == "results/denoise/table_0.01_20000"
+    assert str(table.out_dir).startswith("outputs/dss-denoise-table/")
+    assert table.out_dir == table.out_dir  # one path per process, however often it is resolved
+    assert sweep.publish is False and sweep.published_dir == "results/stability"
+    assert str(sweep.out_dir).startswith("outputs/dss-sweep/")
+
+
+def test_denoise_table_publishes_only_the_summary_when_asked(tmp_path, monkeypatch):
+    import experiments.denoise_table as dt
+
+    monkeypatch.chdir(tmp_path)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("denoise_table", overrides=["points=600", "methods=[open3d_taubin]", "floor=false",
+                                                  "progress=false", f"published_dir={tmp_path / 'pub'}"])
+    OmegaConf.set_struct(cfg, False)
+    cfg.cases = [TINY_CASE]
+    cfg.generated = {"count": 0, "held_out": 0, "preset": "cpu"}
+    res = dt.run(cfg)
+    out = Path(res["out_dir"])
+    assert out.is_relative_to(tmp_path / "outputs" / "dss-denoise-table") and (out / "table.md").is_file()
+    assert res["published"] == [] and not (tmp_path / "pub").exists() and not (tmp_path / "results").exists()
+    cfg.out_dir, cfg.publish = str(out), True  # resume the run from its own folder, then publish
+    res = dt.run(cfg)
+    pub = {p.name for p in (tmp_path / "pub").iterdir()}
+    assert pub == set(res["files"].values()) and {"table.md", "table.json", "README.md", "config.yaml"} <= pub
+    assert (tmp_path / "pub" / "table.md").read_text() == (out / "table.md").read_text()
