@@ -331,3 +331,24 @@ def test_dss_request_names_the_shipped_model_it_uses():
     assert hi["model_sha256"] == dt.file_sha256(dt.REPO_ROOT / "experiments/assets/denoiser_noise_1pct.onnx")[:16]
     assert "model_sha256" not in dt._request("dss_l0", cfg, 0.01)
     assert dt.shipped_model_for(["reference=onnx", "reference.model=/x/m.onnx"], 0.01) is None
+
+
+def test_pareto_front_and_cpu_column_use_cpu_seconds_when_every_method_has_them():
+    """Wall time on a busy machine says little; one-thread CPU seconds do not depend on the load.
+    The front is on CPU seconds when every complete method has them, else on wall time."""
+    def rec(case, method, cd, wall, cpu):
+        return {"case": case, "method": method, "kind": "dss", "status": "ok", "message": "",
+                "metrics": {"chamfer": cd, "hausdorff": cd, "p2m": cd}, "time_s": wall, "cpu_s": cpu}
+
+    # fast is slower on the (loaded) wall clock but cheaper in CPU: on the front only by CPU
+    recs = [rec("a", "slow_good", 0.3, 10.0, 40.0), rec("a", "fast", 0.5, 20.0, 10.0)]
+    rows = dt.summarize(recs, ["slow_good", "fast"], ["a"])
+    front = {r["method"] for r in rows if r["pareto"]["chamfer"]}
+    assert front == {"slow_good", "fast"} and rows[0]["clock"] == "cpu_s"
+    info = [{"name": "a", "status": "ready", "key": {"points": 10, "noise": 0.01, "case": {}},
+             "source": {"family": "x", "index": 0}}]
+    md = _md_rows(dt.render_markdown(rows, info, "t", []))
+    assert md["fast"][-1] == "**10**" and md["fast"][-2] == "20"  # time (s), CPU (s)
+    recs[1]["cpu_s"] = None  # one method without CPU seconds: wall time decides
+    rows = dt.summarize(recs, ["slow_good", "fast"], ["a"])
+    assert {r["method"] for r in rows if r["pareto"]["chamfer"]} == {"slow_good"} and rows[0]["clock"] == "time_s"
