@@ -632,7 +632,6 @@ def parse_args(argv=None):
         ap.error("--publish writes the CPU table (results/bench/runtime_table); give a run without the cpp "
                  "backend an --out (the published GPU runs are in results/bench/gpu/<gpu>/)")
     args.chosen = chosen
-    args.out = str(outputs.folder(args, "dss-runtime-table", name="runtime_table"))
     return args
 
 
@@ -694,7 +693,7 @@ def refloor(args) -> dict:
         check_rates_device(gpu_rates, str(result.get("columns", {}).get("cuda", "")))
     result["floor"] = floor_comparison(rows, counts, settings, gpu_rates,
                                        threads=result.get("machine", {}).get("torch_threads"))
-    _write(result, Path(args.out))
+    _write(result, outputs.folder(args, "dss-runtime-table", name="runtime_table"))
     return result
 
 
@@ -737,7 +736,7 @@ def run(argv=None) -> dict:
     counts = load_counts(args.counts)
     if counts is not None:
         result["floor"] = floor_comparison(rows, counts, result["settings"], gpu_rates)
-    _write(result, Path(args.out))
+    _write(result, outputs.folder(args, "dss-runtime-table", name="runtime_table"))
     return result
 
 
