@@ -7,5 +7,5 @@
 - :mod:`data_prep.shards`: deterministic, resumable, parallel ``dss-pairs/1`` shards + manifest.
 - :mod:`data_prep.preview`: PNG sheets of the families and of rendered pairs.
 
-The ``dss-prep`` app (``experiments/prep.py``) drives it all from ``conf/prep.yaml``.
+The ``dss-prep`` app (``experiments/apps/prep.py``) drives it all from ``conf/prep.yaml``.
 """

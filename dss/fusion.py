@@ -34,7 +34,7 @@ Measured on the shipped example (20K points, 1% noise, Chamfer x1e4, paper proto
 DSS cycles (0.336): references rendered from the clean cloud take it to 0.234, the input's own
 renders leave it at 0.327 (consistency 0.04 on average); without the consistency weight the
 input's renders pulled the points to their front envelope (Chamfer above 1). Per-stage numbers:
-``python -m experiments.image_study``; docs/denoising.md.
+``python -m experiments.evaluation.image_study``; docs/denoising.md.
 
 The displacement is the closed-form minimiser, per point, of the squared depth residuals
 against the references along the point's normal: a Gauss-Newton step of a point-wise image

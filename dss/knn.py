@@ -6,7 +6,7 @@ Three backends, one contract:
   bucketed by cell, queries visited in cell order, rings of cells scanned until the k-th best
   distance is within them), all cores, 3D CPU points. Ties are ordered by index. About 1.7-2x
   faster than cKDTree on 2 cores at 100K surface points (``python -m
-  experiments.bench_regularizers``).
+  experiments.benchmarks.bench_regularizers``).
 * ``"scipy"``: :class:`scipy.spatial.cKDTree` built on a detached float64 NumPy copy of the
   points and queried with ``workers=-1`` (all cores). O(N log N), no N x N matrix. Used for CPU
   tensors that are not 3D or when the C++ kernel does not build.

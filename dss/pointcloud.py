@@ -538,7 +538,7 @@ def find_outliers(points, k: int = 16, z_threshold: float = 8.0, ratio_threshold
 
     Flagged points are taken out and both tests re-run (``iterations`` rounds at most), because
     an outlier next to another outlier only stands out once its companion is gone. Scale-free
-    (only ratios of distances). Measured by ``python -m experiments.outlier_study`` (kangaroo and 6
+    (only ratios of distances). Measured by ``python -m experiments.evaluation.outlier_study`` (kangaroo and 6
     generated shapes, results/outliers/): with 1-10% uniform outliers in the bounding box at 10K
     points and 1% noise, 85-86% of the outliers more than 3 noise sigmas off the surface are found
     (53-57% of all: the rest lie among the noisy samples) and at most 0.1% of the inliers go;

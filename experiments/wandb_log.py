@@ -11,7 +11,7 @@ The apps' ``wandb`` block (``conf/denoise.yaml``)::
 A logged run holds the resolved config, the optimiser's loss per step, every scalar of
 ``metrics.json`` as the run summary (dotted keys, e.g. ``summary.output.paper.chamfer``) and the
 run's PNG figures. The local alternative needs no W&B at all:
-``python -m experiments.baselines.aggregate <multirun dir>`` turns a sweep's ``metrics.json``
+``python -m experiments.evaluation.baselines.aggregate <multirun dir>`` turns a sweep's ``metrics.json``
 files into one table and an accuracy-vs-time chart.
 """
 
@@ -60,7 +60,7 @@ def check(node) -> bool:
 
 def _scalars(d: dict) -> dict[str, float]:
     """Finite int/float leaves of a nested dict as ``{"a.b": value}`` (bools, strings and lists dropped)."""
-    from experiments.baselines.aggregate import flatten
+    from experiments.evaluation.baselines.aggregate import flatten
 
     return {k: v for k, v in flatten(d).items()
             if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}

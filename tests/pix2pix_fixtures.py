@@ -60,7 +60,7 @@ def pairs_root(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def trained_run(pairs_root, tmp_path_factory) -> dict:
     """dss-train run() of the tiny preset for 2 epochs; returns its result dict."""
-    from experiments.train import run
+    from experiments.apps.train import run
 
     out = tmp_path_factory.mktemp("trained") / "run"
     cfg = compose_train(tiny_overrides(pairs_root, out, "trainer.max_epochs=2"))

@@ -18,8 +18,8 @@ def _help(module: str) -> str:
 
 
 @pytest.mark.parametrize("module, own, foreign", [
-    ("experiments.denoise", ["reference: "], ["model: ", "scene: ", "study: ", "trainer: "]),
-    ("experiments.train", ["model: ", "trainer: ", "data: "], ["reference: ", "scene: ", "study: "]),
+    ("experiments.apps.denoise", ["reference: "], ["model: ", "scene: ", "study: ", "trainer: "]),
+    ("experiments.apps.train", ["model: ", "trainer: ", "data: "], ["reference: ", "scene: ", "study: "]),
 ])
 def test_help_lists_only_the_apps_groups(module, own, foreign):
     text = _help(module)

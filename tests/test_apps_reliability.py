@@ -39,7 +39,7 @@ def test_render_of_a_tiny_cloud_in_its_own_units_matches_the_unit_scale_one(sphe
     import matplotlib.image
 
     from dss.pointcloud import load_ply
-    from experiments.render import run
+    from experiments.apps.render import run
 
     c = load_ply(sphere_ply)
     small = tmp_path / "small.ply"
@@ -61,7 +61,7 @@ def test_deform_blowup_fails_without_writing_a_result(sphere_ply, tmp_path):
     rates cannot recover (here: at most 2 halvings) the run fails and writes no final.ply or
     metrics.json."""
     from dss.optimize import OptimizationDiverged
-    from experiments.deform import run
+    from experiments.apps.deform import run
 
     out = tmp_path / "deform"
     cfg = compose_cfg("deform", [f"target.path={sphere_ply}", "start.points=300", "image_size=32",
@@ -108,7 +108,7 @@ def _holder(path: Path):
 
 def test_a_second_run_into_a_claimed_directory_fails_at_once(sphere_ply, tmp_path):
     from experiments.common import OutputInUseError, release_claims
-    from experiments.render import run
+    from experiments.apps.render import run
 
     out = tmp_path / "busy"
     holder = _holder(out)
@@ -128,18 +128,18 @@ def test_refused_cli_run_leaves_the_earlier_runs_files_as_they_were(sphere_ply, 
     """`dss-render hydra.run.dir=D` twice: the second is refused in one line (exit 2) before Hydra
     writes its .hydra/*.yaml, so the first run's stay byte for byte."""
     d = tmp_path / "run"
-    first = _cli("experiments.render", str(sphere_ply), "views=2", "image_size=32", f"hydra.run.dir={d}")
+    first = _cli("experiments.apps.render", str(sphere_ply), "views=2", "image_size=32", f"hydra.run.dir={d}")
     assert first.returncode == 0, first.stderr[-2000:]
     before = {p.name: p.read_bytes() for p in (d / ".hydra").glob("*.yaml")}
     assert set(before) == {"config.yaml", "hydra.yaml", "overrides.yaml"}
-    second = _cli("experiments.render", str(sphere_ply), "views=3", "image_size=32", f"hydra.run.dir={d}")
+    second = _cli("experiments.apps.render", str(sphere_ply), "views=3", "image_size=32", f"hydra.run.dir={d}")
     assert second.returncode == 2
     lines = second.stderr.strip().splitlines()
     assert len(lines) == 1 and "holds an earlier run's results" in lines[0] and "overwrite=true" in lines[0], lines
     assert {p.name: p.read_bytes() for p in (d / ".hydra").glob("*.yaml")} == before
     # overwrite=true replaces the earlier run: no older view PNG stays beside the new ones
     assert (d / "views" / "sun_001.png").is_file()
-    third = _cli("experiments.render", str(sphere_ply), "views=1", "image_size=32", "overwrite=true",
+    third = _cli("experiments.apps.render", str(sphere_ply), "views=1", "image_size=32", "overwrite=true",
                  f"hydra.run.dir={d}")
     assert third.returncode == 0, third.stderr[-2000:]
     assert sorted(p.name for p in (d / "views").glob("*.png")) == ["depth_000.png", "normals_000.png", "sun_000.png"]
@@ -154,7 +154,7 @@ def _denoise_overrides(cloud: Path, out: Path, *extra: str) -> list[str]:
 @pytest.fixture(scope="module")
 def noisy_with_outliers(tmp_path_factory) -> Path:
     from data_prep.sampling import noisy_copy
-    from experiments.make_example import write_ply
+    from experiments.apps.make_example import write_ply
 
     p, _ = sphere_points(1500, 0.4)
     noisy = noisy_copy(p.numpy(), 0.01, seed=1)
@@ -166,7 +166,7 @@ def noisy_with_outliers(tmp_path_factory) -> Path:
 
 def test_denoise_refuses_a_used_run_dir_and_overwrite_leaves_no_stale_file(noisy_with_outliers, tmp_path):
     from experiments.common import OutputExistsError
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     out = tmp_path / "run"
     m = run(compose_cfg("denoise", _denoise_overrides(noisy_with_outliers, out)))
@@ -205,7 +205,7 @@ def test_denoise_checks_outputs_points_and_model_before_any_work(noisy_with_outl
     from onnx import TensorProto, helper
 
     from dss.optimize import MultiViewOptimizer
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
     from pix2pix.runtime import DenoiserFormatError
 
     steps = []
@@ -247,13 +247,13 @@ def test_expected_failures_print_one_line_and_exit_2(sphere_ply, tmp_path):
     data = sphere_ply.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
     cases = [
-        (("experiments.render", str(sphere_ply), "inptu=x", f"hydra.run.dir={tmp_path / 'a'}"),
+        (("experiments.apps.render", str(sphere_ply), "inptu=x", f"hydra.run.dir={tmp_path / 'a'}"),
          r"unknown key 'inptu' \(did you mean 'input'\?\)"),
-        (("experiments.denoise", "reference=onxx", f"hydra.run.dir={tmp_path / 'b'}"),
+        (("experiments.apps.denoise", "reference=onxx", f"hydra.run.dir={tmp_path / 'b'}"),
          r"no config 'onxx' in 'reference' \(did you mean 'onnx'\?\)"),
-        (("experiments.render", str(cut), f"hydra.run.dir={tmp_path / 'c'}"), r"cut\.ply: truncated"),
-        (("experiments.render", f"hydra.run.dir={tmp_path / 'd'}"), r"missing value: input=\.\.\. is required"),
-        (("experiments.train", f"data.root={tmp_path / 'nodata'}", "logger=none", f"hydra.run.dir={tmp_path / 'e'}"),
+        (("experiments.apps.render", str(cut), f"hydra.run.dir={tmp_path / 'c'}"), r"cut\.ply: truncated"),
+        (("experiments.apps.render", f"hydra.run.dir={tmp_path / 'd'}"), r"missing value: input=\.\.\. is required"),
+        (("experiments.apps.train", f"data.root={tmp_path / 'nodata'}", "logger=none", f"hydra.run.dir={tmp_path / 'e'}"),
          r"nodata does not exist: make it with `dss-prep`"),
     ]
     for args, pattern in cases:
@@ -266,7 +266,7 @@ def test_expected_failures_print_one_line_and_exit_2(sphere_ply, tmp_path):
 
         assert re.search(pattern, lines[0]), (args, lines[0])
     # the traceback is one switch away
-    proc = _cli("experiments.render", str(cut), f"hydra.run.dir={tmp_path / 'f'}", env={**_env(), "DSS_DEBUG": "1"})
+    proc = _cli("experiments.apps.render", str(cut), f"hydra.run.dir={tmp_path / 'f'}", env={**_env(), "DSS_DEBUG": "1"})
     assert proc.returncode != 0 and "Traceback" in proc.stderr and "truncated" in proc.stderr
 
 
@@ -280,7 +280,7 @@ def test_joblib_launcher_runs_a_multirun_in_parallel_jobs(sphere_ply, tmp_path):
     import yaml
 
     sweep = tmp_path / "sweep"
-    proc = _cli("experiments.render", "-m", f"input={sphere_ply}", "views=1,2", "image_size=32",
+    proc = _cli("experiments.apps.render", "-m", f"input={sphere_ply}", "views=1,2", "image_size=32",
                 "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     views = sorted(json.loads((sweep / str(j) / "metrics.json").read_text())["views"] for j in (0, 1))

@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from experiments.baselines import aggregate as agg
-from experiments.baselines.methods import METHODS, PRESETS, preset_params
-from experiments.baselines.runner import list_methods, run_method, run_methods
+from experiments.evaluation.baselines import aggregate as agg
+from experiments.evaluation.baselines.methods import METHODS, PRESETS, preset_params
+from experiments.evaluation.baselines.runner import list_methods, run_method, run_methods
 
 FAKES = textwrap.dedent(
     """

@@ -605,7 +605,7 @@ def test_load_cuda_can_be_disabled(monkeypatch):
 def test_bench_gpu_says_it_needs_a_gpu(capsys):
     if torch.cuda.is_available():
         pytest.skip("a GPU is present (run the benchmark itself)")
-    from experiments import bench_gpu
+    from experiments.benchmarks import bench_gpu
 
     with pytest.raises(SystemExit) as e:
         bench_gpu.main(["--points", "100", "--repeats", "1"])
@@ -614,7 +614,7 @@ def test_bench_gpu_says_it_needs_a_gpu(capsys):
 
 
 def test_bench_gpu_sets_and_restores_the_visibility_walk(monkeypatch):
-    from experiments.bench_gpu import _with_vis_order
+    from experiments.benchmarks.bench_gpu import _with_vis_order
 
     monkeypatch.delenv("DSS_CUDA_VIS_ORDER", raising=False)
     assert _with_vis_order("rows", lambda: os.environ["DSS_CUDA_VIS_ORDER"]) == "rows"
@@ -626,7 +626,7 @@ def test_bench_gpu_sets_and_restores_the_visibility_walk(monkeypatch):
 
 
 def test_bench_gpu_times_the_walks_in_turn(monkeypatch):
-    from experiments import bench_gpu
+    from experiments.benchmarks import bench_gpu
 
     monkeypatch.setattr(bench_gpu.torch.cuda, "synchronize", lambda *a: None)
     calls = []
@@ -803,7 +803,7 @@ def test_gpu_module_rejects_cpu_tensors(scenes, cuda_kernel):
         cuda_kernel.rasterize_forward(*forward_args(s))
 
 
-GPU_CHECK = Path(__file__).resolve().parents[1] / "experiments" / "gpu_check.sh"
+GPU_CHECK = Path(__file__).resolve().parents[1] / "experiments" / "benchmarks" / "gpu_check.sh"
 
 
 def test_gpu_check_fits_its_stages_into_the_deadline(tmp_path):

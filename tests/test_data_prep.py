@@ -393,7 +393,7 @@ def test_paper_preset_multirun_axis():
 def test_app_tiny_preset_end_to_end(tmp_path):
     """dss-prep's run() on the tiny preset with the real DSS renderer (reference backend)."""
     pytest.importorskip("dss.render")
-    from experiments.prep import run
+    from experiments.apps.prep import run
     from pix2pix.shards import read_manifest
 
     cfg = _compose(["prep_preset=tiny", f"out_dir={tmp_path / 'ds'}", "render.backend=reference", "progress=false",
@@ -418,7 +418,7 @@ def test_app_tiny_preset_end_to_end(tmp_path):
 
 
 def test_app_rejects_bad_config(tmp_path):
-    from experiments.prep import run
+    from experiments.apps.prep import run
 
     with pytest.raises(PrepConfigError, match="unknown shape family 'nope'"):
         run(_compose(["prep_preset=tiny", f"out_dir={tmp_path}", "shapes.families=[nope]"]))

@@ -30,7 +30,7 @@ from dss.optimize import OptimizerConfig
 from dss.pipeline import ReferenceImageError, estimate_noise_level, refine_with_reference
 from dss.pointcloud import PointCloud, PointCloudError, estimate_normals, save_ply
 from dss.render import render
-from experiments.make_example import write_ply
+from experiments.apps.make_example import write_ply
 
 try:
     from tests.pix2pix_fixtures import subprocess_env, wandb_offline_env  # noqa: F401  (fixture)
@@ -121,7 +121,7 @@ def test_estimate_noise_level(family, seed):
 
 
 def test_select_model_by_noise(tmp_path, monkeypatch):
-    import experiments.reference_generators as rg
+    import experiments.apps.reference_generators as rg
 
     monkeypatch.setattr(rg, "ASSETS_DIR", tmp_path)
     with pytest.raises(rg.ModelNotFoundError, match=r"denoiser_noise_1pct\.onnx.*does not exist.*reference=l0"):
@@ -153,7 +153,7 @@ def test_pipeline_improves_chamfer(case):
     derivative is sign(d) / s however small d is: full-strength gradients from rounding noise.
     Both renders now use the same projection, so the identity reference gives exactly zero image
     gradient at the start of each cycle."""
-    from experiments.reference_generators import L0Reference, SpecViewSampler
+    from experiments.apps.reference_generators import L0Reference, SpecViewSampler
 
     spec = load_render_spec(image_size=[64, 64])
     settings, light = spec.render_settings(), spec.point_light()
@@ -217,7 +217,7 @@ def test_reference_renderer_keeps_background_and_checks_output(case):
 
 
 def test_onnx_reference_masks_and_batches(case, tiny_onnx):
-    from experiments.reference_generators import OnnxReference
+    from experiments.apps.reference_generators import OnnxReference
 
     gen = OnnxReference(tiny_onnx, threads=1, max_batch=2)
     spec, source = gen.render_spec()
@@ -235,7 +235,7 @@ def test_onnx_reference_masks_and_batches(case, tiny_onnx):
 
 # ------------------------------------------------------------------------------- the app
 def test_denoise_app_l0_end_to_end(case, tmp_path):
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     out = tmp_path / "run"
     m = run(compose_cfg("denoise", denoise_overrides(case, out)))
@@ -272,7 +272,7 @@ def test_denoise_app_removes_outliers_and_keeps_them_in_a_file(case, tmp_path):
     """Uniform outliers in the bounding box: removed before DSS, written to outliers.ply, the
     input metrics still scored on the input as given; remove=false keeps every point."""
     from dss.pointcloud import load_ply
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     lo, hi = case["noisy"].min(0), case["noisy"].max(0)
     gas = np.random.default_rng(3).uniform(lo, hi, size=(100, 3)).astype(np.float32)
@@ -295,7 +295,7 @@ def test_denoise_app_removes_outliers_and_keeps_them_in_a_file(case, tmp_path):
 
 
 def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     out = tmp_path / "run"
     m = run(compose_cfg("denoise", denoise_overrides(
@@ -313,8 +313,8 @@ def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
 
 
 def test_denoise_app_picks_shipped_model_by_hint(case, tmp_path, tiny_onnx, monkeypatch):
-    import experiments.reference_generators as rg
-    from experiments.denoise import run
+    import experiments.apps.reference_generators as rg
+    from experiments.apps.denoise import run
 
     assets = tmp_path / "assets"
     assets.mkdir()
@@ -330,7 +330,7 @@ def test_denoise_app_picks_shipped_model_by_hint(case, tmp_path, tiny_onnx, monk
 
 
 def test_denoise_app_bad_inputs(case, tmp_path, foreign_onnx):
-    from experiments.denoise import OutputExistsError, run
+    from experiments.apps.denoise import OutputExistsError, run
     from pix2pix.runtime import DenoiserFormatError
 
     def cfg(out, *extra):
@@ -401,7 +401,7 @@ def test_denoise_app_runs_on_a_gpu(case, tmp_path):
     run's result up to float rounding, which steps can amplify but not into a different cloud."""
     if not torch.cuda.is_available():
         pytest.skip("needs a CUDA GPU")
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     res = {}
     for dev in ("cpu", "cuda"):
@@ -420,7 +420,7 @@ def test_denoise_app_runs_on_a_gpu(case, tmp_path):
 def test_shipped_example_is_complete_and_consistent():
     """The no-argument run's input: files present, small, and matching their provenance."""
     from dss.metrics import load_mesh, load_points
-    from experiments.denoise import EXAMPLE_DIR, EXAMPLE_FILES
+    from experiments.apps.denoise import EXAMPLE_DIR, EXAMPLE_FILES
 
     files = [EXAMPLE_DIR / f for f in EXAMPLE_FILES.values()]
     assert all(f.is_file() for f in files)
@@ -435,7 +435,7 @@ def test_shipped_example_is_complete_and_consistent():
 
 
 def test_output_normals_pca_takes_signs_from_the_optimised_ones():
-    from experiments.denoise import output_normals
+    from experiments.apps.denoise import output_normals
 
     g = torch.Generator().manual_seed(0)
     pts = torch.cat([torch.rand(400, 2, generator=g), 0.001 * torch.randn(400, 1, generator=g)], dim=1)
@@ -452,7 +452,7 @@ def test_output_normals_pca_takes_signs_from_the_optimised_ones():
 def test_auto_cycles_follow_the_noise_level():
     from omegaconf import OmegaConf
 
-    from experiments.denoise import resolve_by_noise
+    from experiments.apps.denoise import resolve_by_noise
 
     def resolve_cycles(c, noise):
         return resolve_by_noise(c, noise, "cycles", int)
@@ -471,7 +471,7 @@ def test_auto_cycles_follow_the_noise_level():
 def test_auto_projection_weight_follows_the_noise_level():
     from omegaconf import OmegaConf
 
-    from experiments.denoise import resolve_by_noise
+    from experiments.apps.denoise import resolve_by_noise
 
     cfg = OmegaConf.create({"optimizer": {"projection_weight": "auto"},
                             "projection_weight_by_noise": {0.01: 0.1, 0.02: 0.5}})
@@ -489,7 +489,7 @@ def test_shipped_config_resolves_every_auto_setting():
     keeps the paper's cutoff (1) and k 32."""
     from omegaconf import OmegaConf
 
-    from experiments.denoise import BY_NOISE, resolve_all_by_noise
+    from experiments.apps.denoise import BY_NOISE, resolve_all_by_noise
 
     conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
     for noise, cutoff, k in ((0.01, 1.0, 32), (0.02, 3.0, 96), (0.03, 3.0, 96)):
@@ -505,7 +505,7 @@ def test_neighbourhood_dilation_follows_density():
     from the noise table grows to sqrt(d) only when it was auto itself."""
     from omegaconf import OmegaConf
 
-    from experiments.denoise import resolve_all_by_noise, resolve_neighbourhood
+    from experiments.apps.denoise import resolve_all_by_noise, resolve_neighbourhood
 
     conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
     for n, d, cutoff in ((10000, 1, 1.0), (20000, 1, 1.0), (50000, 3, math.sqrt(3)), (100000, 5, math.sqrt(5)),
@@ -529,7 +529,7 @@ def test_neighbourhood_dilation_follows_density():
 def test_budget_presets_set_views_and_scale_auto_cycles():
     from omegaconf import OmegaConf
 
-    from experiments.denoise import resolve_budget
+    from experiments.apps.denoise import resolve_budget
 
     def cfg(**kw):
         return OmegaConf.create({"views": None, "budget": "auto", "budget_fast_above": 1000,
@@ -583,10 +583,10 @@ def test_denoise_multirun_logs_each_job_to_wandb_offline_and_aggregates(case, tm
     import subprocess
     import sys
 
-    from experiments.baselines import aggregate as agg
+    from experiments.evaluation.baselines import aggregate as agg
 
     r, sweep = case["root"], tmp_path / "sweep"
-    cmd = [sys.executable, "-m", "experiments.denoise", "-m", f"input={r / 'noisy.ply'}", f"clean={r / 'clean.ply'}",
+    cmd = [sys.executable, "-m", "experiments.apps.denoise", "-m", f"input={r / 'noisy.ply'}", f"clean={r / 'clean.ply'}",
            "reference=identity", "optimizer.cycles=1", "optimizer.normal_steps=2", "figures.views=1",
            "figures.image_size=32", "progress=false", "metrics.floor=false", "optimizer.projection_weight=0.05,0.2",
            f"hydra.sweep.dir={sweep}"]
@@ -614,7 +614,7 @@ def test_first_use_compile_is_left_out_of_the_run_time(case, tmp_path, monkeypat
     import time
 
     from dss import _ext
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     module = _ext.load_cpu()
     real = time.perf_counter
@@ -640,7 +640,7 @@ def test_denoise_blowup_fails_and_writes_no_result(case, tmp_path):
     when halving the rates cannot recover, the run fails with a clear message and writes no
     denoised cloud or metrics."""
     from dss.optimize import OptimizationDiverged
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     out = tmp_path / "blow"
     with pytest.raises(OptimizationDiverged, match="diverged and did not recover.*lower the learning rates"):
@@ -661,7 +661,7 @@ def test_denoise_is_scale_free(case, tmp_path):
     """The same cloud scaled by 1e-6: the same noise estimate, the same result in the input's
     units (Chamfer relative to the squared diagonal)."""
     from dss.pointcloud import load_ply
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     s = 1e-6
     write_ply(tmp_path / "noisy_small.ply", case["noisy"] * s)

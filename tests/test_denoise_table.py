@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-import experiments.denoise_table as dt
+import experiments.evaluation.denoise_table as dt
 from dss.metrics import evaluate, load_mesh, load_points
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -154,7 +154,7 @@ def test_resume_skips_completed_records(table, monkeypatch):
 
     # a deleted record and a changed parameter are rerun; nothing else is
     calls = []
-    from experiments.baselines.runner import run_method
+    from experiments.evaluation.baselines.runner import run_method
 
     def counting(spec, *a, **k):
         calls.append((spec, k.get("params")))
@@ -178,7 +178,7 @@ def test_config_errors_before_any_work(tmp_path, fakes):
 
 def test_generated_cases_and_paths(tmp_path):
     shapes = dt.test_split_shapes(3, "cpu")
-    # the first test shape of the cpu preset is the shipped example (experiments/make_example.py)
+    # the first test shape of the cpu preset is the shipped example (experiments/apps/make_example.py)
     assert (shapes[0]["family"], shapes[0]["index"]) == ("superquadric", 26)
     assert len({s["family"] for s in shapes}) == 3 and all(s["resolution"] == 96 for s in shapes)
     # ... and at 20K points and 1% noise its case files are the shipped example's, bit for bit
@@ -221,7 +221,7 @@ def test_meshlab_sample_cases(tmp_path, monkeypatch):
     bone = next(c for c in dt.case_list(cfg) if c["name"] == "bone")
     meta = dt.prepare_case(bone, tmp_path / "bone", 2000, 0.01, seed=0)  # a real mesh file becomes a case
     assert meta["status"] == "ready" and (tmp_path / "bone" / "noisy.ply").is_file()
-    import experiments.denoise_table as mod
+    import experiments.evaluation.denoise_table as mod
 
     monkeypatch.setitem(sys.modules, "pymeshlab", None)  # as if the extra were not installed
     with pytest.raises(RuntimeError, match="needs pymeshlab"):
@@ -284,7 +284,7 @@ def test_score_protocol_noise_in_radius_units(tmp_path, fakes):
     assert 0.25 < meta["noise_diag"] / 0.02 < 0.5  # a radius is at most half the diagonal
     assert np.isclose(np.std(noisy - clean), 0.02 * radius, rtol=0.05)  # per-axis std = 2% of the radius
     rec = json.loads((out / "records/tiny/open3d_mls.json").read_text())
-    from experiments.baselines.methods import preset_params
+    from experiments.evaluation.baselines.methods import preset_params
 
     assert rec["request"]["params"] == preset_params("open3d_mls", meta["noise_diag"])
     mesh = load_mesh(out / "cases/tiny/mesh.ply")

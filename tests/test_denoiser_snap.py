@@ -1,5 +1,5 @@
 """Background snap of the denoiser's output (pix2pix.postprocess), in the ONNX runtime and in
-experiments.evaluate_denoiser (fast)."""
+experiments.evaluation.evaluate_denoiser (fast)."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def test_runtime_snaps_by_default_and_can_return_the_raw_output(model):
 
 
 def test_evaluate_denoiser_reports_raw_and_snapped(model, tmp_path):
-    from experiments.evaluate_denoiser import evaluate, markdown
+    from experiments.evaluation.evaluate_denoiser import evaluate, markdown
 
     _, path = model
     root = make_synthetic_pair_dataset(tmp_path / "ds", n_train=4, n_val=8, size=32, noise_level=0.01,

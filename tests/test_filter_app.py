@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 from data_prep.sampling import poisson_disk
 from data_prep.shapes import make_shape
 from dss.pointcloud import PointCloud, load_ply, save_ply
-from experiments.make_example import write_ply
+from experiments.apps.make_example import write_ply
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 torch.set_num_threads(1)
@@ -40,7 +40,7 @@ def overrides(cloud_file: Path, out: Path, *extra: str) -> list[str]:
 
 
 def test_l0_filter_edits_clean_input(cloud_file, tmp_path):
-    from experiments.filter import run
+    from experiments.apps.filter import run
 
     out = tmp_path / "l0"
     m = run(compose_cfg(overrides(cloud_file, out)))
@@ -61,7 +61,7 @@ def test_l0_filter_edits_clean_input(cloud_file, tmp_path):
 
 
 def test_slic_filter_on_noisy_input_with_ground_truth(cloud_file, tmp_path):
-    from experiments.filter import run
+    from experiments.apps.filter import run
 
     out = tmp_path / "slic"
     m = run(compose_cfg(overrides(cloud_file, out, "reference=slic", "reference.n_segments=40", "noise=0.01",
@@ -74,8 +74,8 @@ def test_slic_filter_on_noisy_input_with_ground_truth(cloud_file, tmp_path):
 
 
 def test_filter_refusals(cloud_file, tmp_path):
-    from experiments.denoise import OutputExistsError
-    from experiments.filter import run
+    from experiments.apps.denoise import OutputExistsError
+    from experiments.apps.filter import run
 
     target = tmp_path / "taken.ply"
     save_ply(target, PointCloud(torch.arange(12.0).view(4, 3)))

@@ -173,7 +173,7 @@ def example_5k(tmp_path_factory) -> Path:
 
 
 def _denoise(inp: Path, reference: str, out: Path, *extra: str) -> dict:
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("denoise", overrides=[
@@ -202,7 +202,7 @@ def test_oracle_references_clearly_beat_identity(example_5k, tmp_path):
 
 
 def test_oracle_needs_ground_truth(example_5k, tmp_path):
-    from experiments.denoise import run
+    from experiments.apps.denoise import run
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("denoise", overrides=[f"input={example_5k}", "reference=oracle", "noise=0.01",

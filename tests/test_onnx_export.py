@@ -75,7 +75,7 @@ def test_parity_on_real_dss_renders(exported):
     from data_prep.shapes import make_shape
     from dss.pointcloud import estimate_normals, normalize_unit_diagonal
     from dss.render import render
-    from experiments.reference_generators import SpecViewSampler
+    from experiments.apps.reference_generators import SpecViewSampler
 
     g, path = exported
     mesh = make_shape("superquadric", seed=4, resolution=32)
@@ -208,7 +208,7 @@ def test_load_generator_rejects_foreign_checkpoint(tmp_path):
 
 
 def test_dss_export_app(trained_run, pairs_root, tmp_path):
-    from experiments.export import run
+    from experiments.apps.export import run
 
     out = tmp_path / "app"
     target = tmp_path / "den.onnx"

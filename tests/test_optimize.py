@@ -302,9 +302,9 @@ def test_deform_app_rejects_unknown_target(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from dss.pointcloud import PointCloudError
-    from experiments import deform
+    from experiments.apps import deform
 
-    conf = Path(deform.__file__).resolve().parents[1] / "conf"
+    conf = Path(deform.__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose("deform", overrides=[f"target.path={tmp_path / 'missing.ply'}", f"+out_dir={tmp_path}"])
     with pytest.raises(PointCloudError, match="missing.ply: no such file"):

@@ -1,8 +1,8 @@
-"""experiments.outlier_study: the counts behind the README's outlier numbers are consistent."""
+"""experiments.evaluation.outlier_study: the counts behind the README's outlier numbers are consistent."""
 
 from __future__ import annotations
 
-from experiments.outlier_study import _pct, render_markdown, study_case, summarize
+from experiments.evaluation.outlier_study import _pct, render_markdown, study_case, summarize
 
 PARAMS = {"k": 16, "z_threshold": 8.0, "ratio_threshold": 3.0, "iterations": 3}
 

@@ -75,7 +75,7 @@ def test_runtime_chart_writes_a_fresh_folder_by_default(tmp_path, monkeypatch):
 
 
 def test_results_index_writes_the_tracked_readme_only_with_publish(tmp_path, monkeypatch):
-    from experiments.results_index import build, main
+    from experiments.evaluation.results_index import build, main
 
     res = tmp_path / "results"
     (res / "misc").mkdir(parents=True)
@@ -102,7 +102,7 @@ def test_table_and_sweep_configs_default_to_fresh_folders(tmp_path, monkeypatch)
 
 
 def test_denoise_table_publishes_only_the_summary_when_asked(tmp_path, monkeypatch):
-    import experiments.denoise_table as dt
+    import experiments.evaluation.denoise_table as dt
 
     monkeypatch.chdir(tmp_path)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

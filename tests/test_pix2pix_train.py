@@ -14,7 +14,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from experiments.train import instantiate_callbacks, instantiate_loggers, run
+from experiments.apps.train import instantiate_callbacks, instantiate_loggers, run
 from pix2pix.datamodule import PairStream, Pix2PixDataModule
 from pix2pix.module import Pix2PixModule
 from pix2pix.networks import PatchDiscriminator, ResNetGenerator
@@ -271,7 +271,7 @@ def test_kill_and_resume_continue_exactly(pairs_root, tmp_path, monkeypatch):
             restored["opt"] = _opt_states(trainer)
 
     cfg_c = compose_train(tiny_overrides(pairs_root, tmp_path / "c", *base, f"ckpt_path={last_b}"))
-    from experiments import train as train_app
+    from experiments.apps import train as train_app
 
     orig = train_app.instantiate_callbacks
     monkeypatch.setattr(train_app, "instantiate_callbacks", lambda c: orig(c) + [Probe()])
@@ -324,7 +324,7 @@ def test_last_checkpoint_is_written_every_epoch_without_improvement(pairs_root, 
 def test_sigterm_saves_the_step_reached_and_resume_continues_there(pairs_root, tmp_path, monkeypatch):
     """A run stopped by SIGTERM mid-epoch writes last.ckpt at the step it reached; resuming
     from it starts at that step with the saved optimiser state and ends at the planned step."""
-    from experiments import train as train_app
+    from experiments.apps import train as train_app
 
     base = ["trainer.max_epochs=2"]
     stop = [f"+callbacks.stop._target_={__name__}.SigtermAt", "+callbacks.stop.epoch=1", "+callbacks.stop.batch=1"]
@@ -391,7 +391,7 @@ def test_wandb_offline_writes_a_run(pairs_root, tmp_path, wandb_offline_env):
 def test_dss_train_cli_end_to_end(pairs_root, tmp_path):
     """`dss-train experiment=noise_1pct data.root=...` through @hydra.main (a subprocess)."""
     out = tmp_path / "cli"
-    cmd = [sys.executable, "-m", "experiments.train", "experiment=noise_1pct",
+    cmd = [sys.executable, "-m", "experiments.apps.train", "experiment=noise_1pct",
            f"data.root={pairs_root}", "model=tiny", "data.num_workers=0",
            "data.persistent_workers=false", "trainer.max_epochs=1", "trainer.max_time=null",
            "logger=csv", f"hydra.run.dir={out}"]
@@ -406,7 +406,7 @@ def test_dss_train_cli_end_to_end(pairs_root, tmp_path):
 def test_optuna_sweep_runs(pairs_root, tmp_path):
     """hparams_search=optuna with two trials of the tiny model (multirun through Hydra)."""
     out = tmp_path / "sweep"
-    cmd = [sys.executable, "-m", "experiments.train", "hparams_search=optuna",
+    cmd = [sys.executable, "-m", "experiments.apps.train", "hparams_search=optuna",
            f"data.root={pairs_root}", "data.noise_level=0.01", "model=tiny",
            "data.num_workers=0", "data.persistent_workers=false", "trainer.max_epochs=1",
            "logger=none", "hydra.sweeper.n_trials=2", "hydra.sweeper.sampler.n_startup_trials=2",
@@ -420,9 +420,9 @@ def test_optuna_sweep_runs(pairs_root, tmp_path):
 
 
 def test_bench_train_times_every_kind_of_preset(tmp_path):
-    """`python -m experiments.bench_train`: the paper preset (linear-decay schedule) is timed as
+    """`python -m experiments.benchmarks.bench_train`: the paper preset (linear-decay schedule) is timed as
     well as the constant-rate CPU presets, and the JSON holds a positive images/s for each."""
-    from experiments.bench_train import main as bench
+    from experiments.benchmarks.bench_train import main as bench
 
     out = tmp_path / "bench.json"
     res = bench(["--presets", "tiny", "paper", "--threads", "1", "--warmup", "0", "--batches", "1",
@@ -435,7 +435,7 @@ def test_bench_train_times_every_kind_of_preset(tmp_path):
 # ---- scale-out -----------------------------------------------------------------------------------
 def _ddp_cmd(pairs_root, out: Path, dump: Path, *extra: str) -> list[str]:
     """dss-train under conf/trainer/ddp.yaml, on 2 CPU processes (gloo) instead of 4 GPUs."""
-    return [sys.executable, "-m", "experiments.train", "trainer=ddp", "trainer.accelerator=cpu",
+    return [sys.executable, "-m", "experiments.apps.train", "trainer=ddp", "trainer.accelerator=cpu",
             "trainer.devices=2", "trainer.sync_batchnorm=false", "model=tiny", "logger=none",
             f"data.root={pairs_root}", "data.noise_level=0.01", "data.batch_size=4", "data.val_batch_size=4",
             "data.num_workers=0", "data.persistent_workers=false", "trainer.num_sanity_val_steps=0",

@@ -214,7 +214,7 @@ def test_bench_regularizers_runs(tmp_path):
     """The benchmark command behind docs/performance.md's regulariser numbers, at a small size."""
     import json
 
-    from experiments.bench_regularizers import run
+    from experiments.benchmarks.bench_regularizers import run
 
     out = tmp_path / "reg.json"
     res = run(["--points", "1500", "--reps", "2", "--threads", "1", "--out", str(out)])

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments.results_index import build, main
+from experiments.evaluation.results_index import build, main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,11 +43,11 @@ def _fake_results(root: Path) -> Path:
     other.mkdir()
     (other / "probe.json").write_text(json.dumps({"what": "a probe", "command": "python -m probe"}))
     (other / "nocommand.json").write_text(json.dumps({"what": "unattributed"}))
-    (other / "reg.json").write_text(json.dumps({  # experiments.bench_regularizers' shape
-        "command": "python -m experiments.bench_regularizers", "rows": [{"points": 20000, "torch_ms": 40.9, "cpp_ms": 13.0}],
+    (other / "reg.json").write_text(json.dumps({  # experiments.benchmarks.bench_regularizers' shape
+        "command": "python -m experiments.benchmarks.bench_regularizers", "rows": [{"points": 20000, "torch_ms": 40.9, "cpp_ms": 13.0}],
         "knn": [{"points": 20000, "k": 16, "scipy_ms": 38.7, "cpp_ms": 17.2}]}))
-    (other / "gpu.json").write_text(json.dumps({  # experiments.bench_gpu's shape
-        "command": "python -m experiments.bench_gpu", "device": "NVIDIA H100 80GB HBM3",
+    (other / "gpu.json").write_text(json.dumps({  # experiments.benchmarks.bench_gpu's shape
+        "command": "python -m experiments.benchmarks.bench_gpu", "device": "NVIDIA H100 80GB HBM3",
         "results": [{"points": 20000, "kernels": {"sum_median_ms": 1.89}, "render": {"step_ms": 5.69}}]}))
     return res
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from experiments import runtime_table as rt
+from experiments.benchmarks import runtime_table as rt
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +87,7 @@ def test_cuda_column_without_gpu(quick):
 def test_benchmark_clouds_can_be_cached(tmp_path, monkeypatch):
     """DSS_BENCH_CLOUDS: the first call samples and writes the cloud, the next reads it back
     (a machine without open3d or ../shared then times the same cloud)."""
-    from experiments.bench_render import benchmark_cloud
+    from experiments.benchmarks.bench_render import benchmark_cloud
 
     monkeypatch.setenv("DSS_BENCH_CLOUDS", str(tmp_path / "clouds"))
     p, n, src = benchmark_cloud(300, seed=3)
@@ -144,7 +144,7 @@ def test_floor_comparison_and_targets(tmp_path, cpp_backend):
 def test_first_views_match_dss_bench_cameras():
     """The sampler is set up like dss-bench's cameras_for: its first view set is the same."""
     from dss.views import SphereViewSampler
-    from experiments.bench_render import cameras_for
+    from experiments.benchmarks.bench_render import cameras_for
 
     pts = torch.rand(200, 3) - 0.5
     radius = float(pts.norm(dim=1).max())
@@ -158,7 +158,7 @@ def test_first_views_match_dss_bench_cameras():
 def test_measured_rates_are_peaks_of_repeated_calls():
     """perf_counts' floor rates: the fastest call of each measurement (a peak, not the mean over
     a noisy second), and the copy bandwidth the faster of the one-thread and all-thread copies."""
-    from experiments import perf_counts
+    from experiments.benchmarks import perf_counts
 
     calls = iter([3.0, 1.0, 2.0])  # call durations (s) after the warm-up call
     clock = {"t": 0.0}
@@ -176,7 +176,7 @@ def test_measured_rates_are_peaks_of_repeated_calls():
 def test_gpu_floors_on_given_rates_match_the_tables_h100_floors(capsys):
     """perf_counts.gpu_floors on the published H100 rates gives the runtime table's H100 floors
     (the same counted work, one formula); --gpu-rates refuses to run without a GPU."""
-    from experiments import perf_counts
+    from experiments.benchmarks import perf_counts
 
     counts = json.loads(Path("results/bench/perf_counts.json").read_text())
     rows = perf_counts.gpu_floors(counts, rt.H100_PUBLISHED)
@@ -196,7 +196,7 @@ H100_RUN = Path(__file__).resolve().parents[1] / "results" / "bench" / "gpu" / "
 def test_from_json_redoes_the_cuda_floors_on_measured_gpu_rates(tmp_path):
     """--from-json --gpu-rates: the shipped H100 table with floors on that GPU's measured rates;
     the measurements are kept as they were, the floors equal perf_counts' own on those rates."""
-    from experiments import perf_counts
+    from experiments.benchmarks import perf_counts
 
     src = H100_RUN / "runtime_table_cuda.json"
     rates_file = H100_RUN / "gpu_rates.json"

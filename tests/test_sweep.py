@@ -13,8 +13,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-import experiments.denoise_table as dt
-import experiments.sweep as sw
+import experiments.evaluation.denoise_table as dt
+import experiments.evaluation.sweep as sw
 from dss.metrics import load_points
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"

@@ -22,7 +22,7 @@ namespace {
 // that packed a window's pixels 16 at a time in row-major order, 5 vectors and one pixel per 9 x 9
 // window instead of 9 vectors, was 1.07x slower: each vector read 2-3 row runs per plane and
 // moved its lanes to their columns' partials.) A row costs about 80 cycles, bound by its chain
-// of three divisions and the comparisons between them (session 37, docs/performance.md); rows
+// of three divisions and the comparisons between them (docs/performance.md); rows
 // where the point is not cached take eval_nok, about a third of eval.
 struct VisRowOut16 {
   __m512 x1, y1, x2, y2, z;
@@ -231,8 +231,8 @@ struct VisLanes16 {
   // others, visibility_backward's krows): found is 0 in every lane, so every lane takes case (a)
   // or (b), and the cache entries are read only where k becomes the front. The same operations
   // in the same order as eval's for such lanes, so the same bits (tests compare every level with
-  // the scalar path). It costs about a third of eval (session 37: eval rows 6.6 ms, these 8.9 ms
-  // for 4.5 times as many).
+  // the scalar path). It costs about a third of eval (eval rows 6.6 ms, these 8.9 ms for 4.5
+  // times as many, at 20K points).
   template <class Addr>
   DSS_AVX512 void eval_nok(const Addr& a, __mmask16 oki, __m512 px, __m512 vpy, VisRowOut16& out) const {
     const __m512 zero = _mm512_setzero_ps();

@@ -6,13 +6,13 @@
 
 Reads the JSONs that ``dss-runtime-table`` writes (it measures nothing itself): ``--cpu``, a table
 with the C++ column measured (and the PyTorch reference where it ran), and ``--cuda``, a table
-with the CUDA column measured (on a GPU machine; ``experiments/gpu_check.sh table``). Two panels:
+with the CUDA column measured (on a GPU machine; ``experiments/benchmarks/gpu_check.sh table``). Two panels:
 
 - left, per workload, the time of one optimisation step (forward + backward, ms, log scale) as
   the paper reports it: averaged over the run's position and normal steps with the paper's step
   counts as weights. The paper's GTX 1080Ti figures are the published ones (Table tab:speed);
 - right, per workload and kind of step, the measured step over its counted floor
-  (``experiments/perf_counts``: the work over the device's peak rates), with the 4x target line
+  (``experiments/benchmarks/perf_counts.py``: the work over the device's peak rates), with the 4x target line
   for the CPU. A ratio is only as good as the floor's rates: the JSON says which rates each
   table used (the CPU's measured; the GPU's measured with ``--gpu-rates``, else the H100's
   published spec).

@@ -1,8 +1,0 @@
-"""Classical denoising baselines run in time-limited subprocesses, and the sweep aggregator.
-
-* :mod:`experiments.baselines.methods` -- the registered methods (CGAL, Open3D, MeshLab).
-* :mod:`experiments.baselines.runner` -- :func:`run_method`: one method, one cloud, one
-  subprocess; failures become records.
-* :mod:`experiments.baselines.aggregate` -- a directory of ``metrics.json`` files -> one table
-  (markdown + JSON) and an accuracy-vs-time chart with the Pareto front.
-"""
