@@ -701,7 +701,7 @@ def test_denoise_runs_where_open3d_is_missing(tmp_path):
     save_ply(tmp_path / "in.ply", PointCloud(torch.from_numpy(v.astype(np.float32))))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]),
            "OMP_NUM_THREADS": "1"}
-    code = ("from experiments.denoise import main; import sys; sys.argv = ['dss-denoise', *sys.argv[1:]]; main()")
+    code = ("from experiments.apps.denoise import main; import sys; sys.argv = ['dss-denoise', *sys.argv[1:]]; main()")
     proc = subprocess.run(
         [sys.executable, "-c", code, str(tmp_path / "in.ply"), "reference=identity", "noise=0.01",
          "optimizer.cycles=1", "optimizer.normal_steps=2", "fusion.passes=1", "image_size=64",
