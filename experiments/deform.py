@@ -285,7 +285,8 @@ def run(cfg: DictConfig) -> dict:
     log.info("normal error %.1f deg (%.1f%% flipped), nn spacing CV %.2f%s", metrics["normal_error_deg"]["mean"],
              100 * metrics["normal_error_deg"]["flipped_fraction"], metrics["spacing"]["nn_cv"],
              "" if topo is None else f", openings {topo['openings']} (target {topo['openings_target']}; "
-             f"{topo['views_missing_holes']} of {topo['views']} views miss a hole, {topo['views_extra_holes']} show an extra one)")
+             f"{topo['holes_total']} holes in {topo['views']} views against {topo['holes_total_target']}; "
+             f"{topo['views_missing_holes']} views miss a hole, {topo['views_extra_holes']} show an extra one)")
     release_claims()
     return metrics
 

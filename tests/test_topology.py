@@ -72,6 +72,18 @@ def test_sparse_or_noisy_sampling_keeps_the_count(n, noise):
         assert silhouette_holes(p).max() == want
 
 
+def test_a_sparse_patch_is_drawn_closed():
+    """A patch of the surface sampled 6x sparser (as optimised surfaces are, here and there)
+    renders closed with splats sized to the local spacing; the disks follow it (fixed disks of the
+    dense part's size show it as holes)."""
+    p = _sphere(20000, seed=4)
+    cap = p[:, 2] > 0.5
+    keep = ~cap | (np.random.default_rng(5).uniform(size=len(p)) < 1 / 6)
+    q = _unit_diagonal(p[keep])
+    assert silhouette_holes(q).max() == 0
+    assert silhouette_holes(q, spacing_factor=0.0, point_radius=0.004).max() > 0
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError):
         silhouette_holes(np.zeros((0, 3)))
