@@ -377,6 +377,28 @@ def normal_error_deg(points: Any, normals: Any, mesh: Any) -> dict:
     return {"mean": float(ang.mean()), "median": float(np.median(ang)), "p90": float(np.percentile(ang, 90))}
 
 
+def normal_error_to_points(points: Any, normals: Any, ref_points: Any, ref_normals: Any) -> dict:
+    """Angle (degrees) between each normal and the normal of the nearest reference point.
+
+    ``mean`` / ``median`` / ``p90`` are unoriented (|cos|: the surface's direction, whatever the
+    sign); ``flipped_fraction`` is the fraction of normals that point against the reference's
+    (cos < 0), which back-face culling turns into holes and specks in a render.
+
+    Args:
+        points, normals: (K, 3); ref_points, ref_normals: (M, 3), in the same frame.
+    """
+    p, n = as_points(points), as_points(normals, "normals")
+    q, m = as_points(ref_points, "ref_points"), as_points(ref_normals, "ref_normals")
+    if n.shape != p.shape or m.shape != q.shape:
+        raise ValueError(f"normals {n.shape} / {m.shape} must match points {p.shape} / {q.shape}")
+    _, idx = cKDTree(q).query(p, k=1, workers=-1)
+    ref = m[idx]
+    cos = (ref * n).sum(1) / np.maximum(np.linalg.norm(n, axis=1) * np.linalg.norm(ref, axis=1), 1e-30)
+    ang = np.degrees(np.arccos(np.clip(np.abs(cos), 0.0, 1.0)))
+    return {"mean": float(ang.mean()), "median": float(np.median(ang)), "p90": float(np.percentile(ang, 90)),
+            "flipped_fraction": float((cos < 0).mean())}
+
+
 def _refine_point_to_triangles(
     points: np.ndarray,
     best: np.ndarray,

@@ -174,6 +174,11 @@ class OptimizerConfig:
     window_end: int = 4
     window_decay: float = 0.9
     window_samples: int = 8
+    # > 0: window_start / window_end are in pixels of an image this many pixels across, and a
+    # larger (smaller) image scales them up (down) so that the window keeps its reach on the
+    # object and against the splats, whose size in pixels grows with the image (0: in pixels
+    # whatever the image size)
+    window_reference_size: int = 0
     error_aware_cycles: int = 0
     error_aware_distance: float = 0.5
     grad_smoothing: int = 0  # passes of neighbour averaging of the image gradient on the points
@@ -261,9 +266,15 @@ class OptimizationResult:
     history: dict = field(default_factory=dict)
 
 
-def window_for_cycle(cfg: OptimizerConfig, cycle: int) -> tuple[int, int]:
-    """Visibility-gradient window (half size, stride) for a cycle: long range first, then local."""
-    w = max(cfg.window_end, int(round(cfg.window_start * cfg.window_decay**cycle)))
+def window_for_cycle(cfg: OptimizerConfig, cycle: int, image_size: int | None = None) -> tuple[int, int]:
+    """Visibility-gradient window (half size, stride) for a cycle: long range first, then local.
+
+    With ``cfg.window_reference_size`` > 0 and ``image_size`` (the larger side, pixels) given, the
+    windows scale by ``image_size / window_reference_size``; the stride keeps ``window_samples``
+    samples per half window, so a scaled window costs about what the unscaled one does."""
+    scale = image_size / cfg.window_reference_size if cfg.window_reference_size > 0 and image_size else 1.0
+    end = max(1, int(round(cfg.window_end * scale)))
+    w = max(end, int(round(cfg.window_start * scale * cfg.window_decay**cycle)))
     stride = max(1, math.ceil(w / max(1, cfg.window_samples)))
     return w, stride
 
@@ -660,7 +671,7 @@ class MultiViewOptimizer:
                         group["lr"] *= c.lr_decay
                         if "scheduled_lr" in group:
                             group["scheduled_lr"] *= c.lr_decay
-            window, stride = window_for_cycle(c, cycle)
+            window, stride = window_for_cycle(c, cycle, max(cams.image_size))
             prev_point_loss = None
             # the loss guard's reference: the cycle's first loss and state (same cameras and
             # references for every step of the cycle, so their losses compare)

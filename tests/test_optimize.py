@@ -231,6 +231,16 @@ def test_window_schedule_shrinks():
     assert all(a[0] >= b[0] for a, b in zip(ws, ws[1:]))
 
 
+def test_window_schedule_scales_with_the_image():
+    """window_reference_size: windows given for 128 px double at 256 px, with the same number of
+    samples per half window; without it the image size changes nothing."""
+    cfg = OptimizerConfig(window_start=16, window_end=4, window_decay=0.9, window_samples=8, window_reference_size=128)
+    assert window_for_cycle(cfg, 0, 128) == (16, 2) and window_for_cycle(cfg, 0, 256) == (32, 4)
+    assert window_for_cycle(cfg, 30, 256) == (8, 1) and window_for_cycle(cfg, 30, 128) == (4, 1)
+    plain = OptimizerConfig(window_start=16, window_end=4)
+    assert window_for_cycle(plain, 0, 256) == window_for_cycle(plain, 0) == (16, 2)
+
+
 def test_occlusion_counts_count_hidden_points():
     cams = look_at(torch.tensor([[0.0, 0.0, 3.0]]), (0, 0, 0), (0, 1, 0), 60.0, (32, 32))
     pts = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.0]])  # the second hides behind the first

@@ -4,7 +4,9 @@ Writes into the run directory: ``config.yaml``, ``final.ply``, ``snapshots/step_
 ``snapshots.png`` (renders at the chosen steps, a column each, like the paper's teaser),
 ``loss_curve.png`` + ``loss.json``, ``chamfer_vs_time.png`` (Chamfer to the target against wall
 time) and ``metrics.json`` (Chamfer and Hausdorff to the target under the paper protocol, wall
-time, steps, learning-rate halvings, point spacing); the 2D grid experiments
+time, steps, learning-rate halvings, point spacing, normal error against the target's normals,
+and ``topology``: silhouette holes of the result and the target from a fixed set of views,
+:mod:`dss.topology`); the 2D grid experiments
 (``front_view_only``) also ``points_xy.png``, the final points on the image plane.
 """
 
@@ -22,10 +24,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from dss.cameras import fibonacci_sphere, fit_distance, focal_from_fov, look_at, ring_cameras
 from dss.io_utils import atomic_savefig, atomic_write_json
-from dss.metrics import evaluate, spacing_stats
+from dss.metrics import evaluate, normal_error_to_points, spacing_stats
 from dss.optimize import MultiViewOptimizer, OptimizerConfig
 from dss.pointcloud import PointCloud, PointCloudError, load_ply, normalize_unit_diagonal, save_ply
 from dss.render import render, resolve_backend
+from dss.topology import openings
 from dss.viz import image_grid, save_png, to_uint8
 from experiments.common import (
     claim_run_dir,
@@ -264,6 +267,12 @@ def run(cfg: DictConfig) -> dict:
         "backend": backend,
         # point spread (the repulsion term's job): on the image plane for the 2D grid experiments
         "spacing": spacing_stats(result.points * torch.tensor([1.0, 1.0, 0.0]) if cfg.front_view_only else result.points),
+        # clean surfaces: the normals against the target's (nearest target point), unoriented
+        # mean and the fraction pointing the wrong way (specks under back-face culling)
+        "normal_error_deg": normal_error_to_points(result.points, result.normals, tp, tn),
+        # openings: holes in silhouettes from a fixed hemisphere of views, result vs target
+        # (dss.topology; the 2D grid experiments have no 3D shape to count)
+        "topology": None if cfg.front_view_only else openings(result.points, tp),
         "chamfer_vs_time": chamfer_log,
         "snapshot_steps": sorted(snaps),
     }
@@ -272,6 +281,12 @@ def run(cfg: DictConfig) -> dict:
         _plot_points_2d(out, result.points, metrics["spacing"])
     log.info("Chamfer %.3f -> %.3f (x1e4), Hausdorff %.2f -> %.2f (x1e3) in %.0f s", initial.chamfer, final.chamfer,
              initial.hausdorff, final.hausdorff, result.history["wall_time"])
+    topo = metrics["topology"]
+    log.info("normal error %.1f deg (%.1f%% flipped), nn spacing CV %.2f%s", metrics["normal_error_deg"]["mean"],
+             100 * metrics["normal_error_deg"]["flipped_fraction"], metrics["spacing"]["nn_cv"],
+             "" if topo is None else f", openings {topo['openings']} (target {topo['openings_target']}; "
+             f"{topo['holes_total']} holes in {topo['views']} views against {topo['holes_total_target']}; "
+             f"{topo['views_missing_holes']} views miss a hole, {topo['views_extra_holes']} show an extra one)")
     release_claims()
     return metrics
 
