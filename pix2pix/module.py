@@ -36,6 +36,18 @@ output, the denoiser as the runtime ships it, are logged as ``val/snap_{...}`` a
 grid (rows: noisy | output | clean) as PNG into ``<run dir>/val_grids/`` and sends it to the
 loggers that take images (TensorBoard, W&B).
 
+The ``planes`` channel (batches with ``coords``, :mod:`pix2pix.datamodule`): every pixel holds a
+plane whose inverse depth at the pixel is ``a_0 x + a_1 y + a_2``. Two terms can join the L1 on
+the channels, over the surface pixels (covered by the clean and the noisy render): ``lambda_depth``
+x the L1 of that implied inverse depth against the clean render's (the quantity the plane fusion
+reads), and ``lambda_normal`` x the mean ``1 - cos`` between the output's and the clean planes'
+directions (their normals). Validation then adds, for the output and the noisy input, the
+geometry the planes imply (:func:`pix2pix.metrics.planes_metric_sums`): ``val/depth_err`` (mean
+|z - z_clean| in bounding-box diagonals, capped at 0.05), ``val/depth_bias``,
+``val/depth_within_1e-3``, ``val/normal_err_deg``, ``val/surface_l1``, ``val/surface_smape``,
+each also as ``val/noisy_...``, and ``val/surface_smape_reduction``, ``val/depth_err_reduction``,
+``val/normal_err_reduction``.
+
 Checkpoints carry ``checkpoint["dss_pix2pix"]``: the generator/discriminator constructor configs
 (JSON) and what the model knows about its data (noise level, render settings, sizes), so that a
 checkpoint can be rebuilt and exported without Hydra (:func:`load_generator`).
@@ -57,6 +69,7 @@ from torch import nn
 
 from ._io import atomic_write_bytes
 from .metrics import l1 as l1_metric
+from .metrics import planes_inverse_depth, planes_metric_sums, surface_pixels
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
 from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered
@@ -120,6 +133,9 @@ class Pix2PixModule(L.LightningModule):
         name: preset name (recorded into exports).
         lambda_coverage: weight of the coverage head's cross-entropy (generators with one).
         init_from: warm-start the generator's weights from this ``.ckpt`` or ``.onnx`` file.
+        lambda_depth: weight of the L1 of the implied inverse depth (planes batches, see the
+            module docstring).
+        lambda_normal: weight of the planes' ``1 - cos`` direction term (planes batches).
     """
 
     def __init__(
@@ -139,6 +155,8 @@ class Pix2PixModule(L.LightningModule):
         name: str = "custom",
         lambda_coverage: float = 10.0,
         init_from: str | None = None,
+        lambda_depth: float = 0.0,
+        lambda_normal: float = 0.0,
     ):
         super().__init__()
         if lr_schedule not in ("constant", "linear"):
@@ -222,6 +240,17 @@ class Pix2PixModule(L.LightningModule):
         self.toggle_optimizer(opt_g)
         loss_l1 = F.l1_loss(l1_image, clean)
         loss_g = self.hparams.lambda_l1 * loss_l1
+        coords = batch.get("coords")
+        lam_d, lam_n = float(self.hparams.get("lambda_depth", 0.0)), float(self.hparams.get("lambda_normal", 0.0))
+        if coords is not None and (lam_d > 0 or lam_n > 0):
+            surf = surface_pixels(noisy, clean)
+            if bool(surf.any()):
+                loss_depth = (planes_inverse_depth(l1_image, coords) - planes_inverse_depth(clean, coords)).abs()[surf].mean()
+                cos = F.cosine_similarity(l1_image, clean, dim=1, eps=1e-8)
+                loss_normal = (1.0 - cos)[surf].mean()
+                loss_g = loss_g + lam_d * loss_depth + lam_n * loss_normal
+                logs["train/depth_l1"] = loss_depth.detach()
+                logs["train/normal_1mcos"] = loss_normal.detach()
         if logit is not None:
             loss_cov = F.binary_cross_entropy_with_logits(logit, clean_cov.to(logit.dtype))
             loss_g = loss_g + self.hparams.lambda_coverage * loss_cov
@@ -292,6 +321,12 @@ class Pix2PixModule(L.LightningModule):
             self._accumulate(prefix + "smape_full", smape_metric(img, clean), b)
         self._accumulate("pixels", torch.ones((), device=noisy.device), npx)
         self._accumulate("count", torch.ones((), device=noisy.device), b)
+        coords = batch.get("coords")
+        if coords is not None:  # the geometry the planes imply (module docstring)
+            surf = surface_pixels(noisy, clean)
+            for prefix, img in (("", out), ("noisy_", noisy)):
+                for k, v in planes_metric_sums(img, clean, coords, surf).items():
+                    self._accumulate(f"planes:{prefix}{k}", v, 1.0)
         k = self.hparams.num_grid_images
         if k > 0 and (self._val_grid is None or self._val_grid[0].shape[0] < k):
             take = (noisy[:k], out[:k], clean[:k])
@@ -309,8 +344,10 @@ class Pix2PixModule(L.LightningModule):
         count = sums.pop("count").clamp_min(1)
         pixels = sums.pop("pixels").clamp_min(1)
         cov = (sums.pop("coverage_hits", None), sums.pop("coverage_pixels", None))
+        planes = {k[len("planes:"):]: sums.pop(k) for k in [k for k in sums if k.startswith("planes:")]}
         means = {k: float(v / (count if k.endswith(("psnr", "_full")) else pixels))
                  for k, v in sums.items()}
+        means.update(_planes_means(planes))
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
         means["l1_reduction"] = 1.0 - means["l1"] / max(means["noisy_l1"], 1e-12)
@@ -378,6 +415,23 @@ class Pix2PixModule(L.LightningModule):
         # init_from=None: the checkpoint holds the weights (the warm-start file may be gone)
         return cls.load_from_checkpoint(path, map_location=map_location, generator=gen,
                                         discriminator=disc, weights_only=False, init_from=None)
+
+
+def _planes_means(sums: dict[str, torch.Tensor]) -> dict[str, float]:
+    """Validation means of the planes metrics' pooled sums (output and ``noisy_``), with the
+    reductions relative to the noisy input."""
+    out: dict[str, float] = {}
+    for prefix in ("", "noisy_"):
+        if prefix + "pixels" not in sums:
+            continue
+        n = float(sums[prefix + "pixels"].clamp_min(1))
+        for k in ("surface_l1", "surface_smape", "depth_err", "depth_within_1e-3", "normal_err_deg"):
+            out[prefix + k] = float(sums[prefix + k]) / n
+        out[prefix + "depth_bias"] = float(sums[prefix + "depth_bias"]) / float(sums[prefix + "depth_bias_pixels"].clamp_min(1))
+    if "pixels" in sums and "noisy_pixels" in sums:
+        for k in ("surface_smape", "depth_err", "normal_err_deg"):
+            out[k.replace("_deg", "") + "_reduction"] = 1.0 - out[k] / max(out["noisy_" + k], 1e-12)
+    return out
 
 
 def _image_and_coverage(generator: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:

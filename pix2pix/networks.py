@@ -57,6 +57,19 @@ def init_xavier(module: nn.Module, gain: float = 0.02) -> None:
     module.apply(_init)
 
 
+def _channel_values(value, channels: int, name: str) -> float | list[float]:
+    """A float, or a list of ``channels`` floats (one per channel) from a config value."""
+    if isinstance(value, int | float):
+        return float(value)
+    try:
+        vals = [float(v) for v in value]
+    except TypeError as e:
+        raise ValueError(f"{name} must be a number or a list of {channels} numbers, got {value!r}") from e
+    if len(vals) != channels:
+        raise ValueError(f"{name}: {len(vals)} values for {channels} channels")
+    return vals
+
+
 def check_image_batch(x: torch.Tensor, channels: int, multiple: int = SIZE_MULTIPLE,
                       min_size: int = MIN_SIZE, who: str = "generator") -> None:
     """Raise ValueError unless ``x`` is (B, channels, H, W) with H, W multiples of ``multiple``."""
@@ -108,6 +121,10 @@ class ResNetGenerator(nn.Module):
         residual: predict a correction added to the input (True) or the image (False, paper).
         input_mean, input_std: normalisation ``(x - mean) / std`` applied inside the module
             (and inverted on the output); 0.5/0.5 maps renders in [0, 1] to [-1, 1] as pix2pix.
+            A float, or one value per channel (a list of ``in_channels``; needs
+            ``in_channels == out_channels``), e.g. for the ``planes`` channel whose third
+            component (about the inverse depth) has another range than the first two (the
+            normal's slopes, about 0).
         init_gain: Xavier gain. pix2pix's default is 0.02 (the ``paper`` preset). Every conv
             here is followed by a normalisation, which makes it scale-invariant, so Adam's
             effective step on it is about lr / |w|: with gain 0.02 that is ~100% of the weights per
@@ -142,8 +159,8 @@ class ResNetGenerator(nn.Module):
         n_blocks: int = 9,
         norm_layer: NormFactory = PixelNorm,
         residual: bool = False,
-        input_mean: float = 0.5,
-        input_std: float = 0.5,
+        input_mean: float | list[float] = 0.5,
+        input_std: float | list[float] = 0.5,
         init_gain: float = 0.02,
         zero_init_head: bool | None = None,
         coverage_head: bool = False,
@@ -155,8 +172,12 @@ class ResNetGenerator(nn.Module):
             raise ValueError(f"need ngf >= 1 and n_blocks >= 0, got ngf={ngf}, n_blocks={n_blocks}")
         if residual and in_channels != out_channels:
             raise ValueError("residual=True needs in_channels == out_channels")
-        if input_std <= 0:
+        mean_v, std_v = _channel_values(input_mean, in_channels, "input_mean"), _channel_values(
+            input_std, in_channels, "input_std")
+        if any(v <= 0 for v in (std_v if isinstance(std_v, list) else [std_v])):
             raise ValueError(f"input_std must be > 0, got {input_std}")
+        if (isinstance(mean_v, list) or isinstance(std_v, list)) and in_channels != out_channels:
+            raise ValueError("per-channel input_mean / input_std need in_channels == out_channels")
         self._config: dict[str, Any] = {
             "in_channels": int(in_channels),
             "out_channels": int(out_channels),
@@ -164,16 +185,18 @@ class ResNetGenerator(nn.Module):
             "n_blocks": int(n_blocks),
             "norm_layer": norm_spec(norm_layer),
             "residual": bool(residual),
-            "input_mean": float(input_mean),
-            "input_std": float(input_std),
+            "input_mean": mean_v,
+            "input_std": std_v,
             "init_gain": float(init_gain),
             "zero_init_head": bool(zero_init_head),
             "coverage_head": bool(coverage_head),
         }
         self.in_channels = in_channels
         self.residual = residual
-        self.input_mean = float(input_mean)
-        self.input_std = float(input_std)
+        # floats stay Python constants (the exported graph of a scalar normalisation is unchanged);
+        # per-channel values are (1, C, 1, 1) buffers outside the state dict (not weights)
+        self.input_mean = self._norm_value("_input_mean", mean_v)
+        self.input_std = self._norm_value("_input_std", std_v)
 
         self.stem = Stem(in_channels, ngf, norm_layer)
         self.down1 = Down(ngf, 2 * ngf, norm_layer)
@@ -191,6 +214,19 @@ class ResNetGenerator(nn.Module):
             nn.init.zeros_(self.coverage[1].weight)
             nn.init.zeros_(self.coverage[1].bias)
 
+    def _norm_value(self, name: str, value: float | list[float]):
+        """``value`` itself (a float), or a (1, C, 1, 1) buffer ``name`` of a per-channel list."""
+        if not isinstance(value, list):
+            return value
+        self.register_buffer(name, torch.tensor(value, dtype=torch.float32).reshape(1, -1, 1, 1), persistent=False)
+        return None
+
+    def _normalisation(self):
+        """(mean, std): floats, or the per-channel buffers (on the module's device)."""
+        mean = self._buffers["_input_mean"] if self.input_mean is None else self.input_mean
+        std = self._buffers["_input_std"] if self.input_std is None else self.input_std
+        return mean, std
+
     def config(self) -> dict[str, Any]:
         """JSON-able constructor arguments (norm layer as import path + kwargs)."""
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
@@ -207,7 +243,8 @@ class ResNetGenerator(nn.Module):
         or None without a coverage head); a logit > 0 means "the clean surface covers it"."""
         if _checks_enabled():
             check_image_batch(x, self.in_channels, who=type(self).__name__)
-        xn = (x - self.input_mean) / self.input_std
+        mean, std = self._normalisation()
+        xn = (x - mean) / std
         y = self.stem(xn)
         y = self.down2(self.down1(y))
         y = self.blocks(y)
@@ -215,7 +252,7 @@ class ResNetGenerator(nn.Module):
         y = self.head(feats)
         if self.residual:
             y = y + xn
-        image = y * self.input_std + self.input_mean
+        image = y * std + mean
         if self.coverage is None:
             return image, None
         covered_in = covered(x).to(x.dtype)
