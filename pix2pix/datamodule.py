@@ -80,6 +80,9 @@ class PairStream(IterableDataset):
         rank, world_size: DDP position (set by the DataModule from the trainer).
         planes: the shards hold the ``planes`` channel: flips mirror the planes, and samples
             carry ``coords``.
+        crop_min_coverage: random crops: up to 8 positions are drawn and the first whose
+            covered fraction (the shards' mask) reaches this is taken (else the most covered
+            one); 0 takes the first draw. Renders are mostly background, which teaches little.
         focal: the renders' focal length in pixels (needed with ``planes``).
     """
 
@@ -101,8 +104,10 @@ class PairStream(IterableDataset):
         world_size: int = 1,
         planes: bool = False,
         focal: float | None = None,
+        crop_min_coverage: float = 0.0,
     ):
         super().__init__()
+        self.crop_min_coverage = float(crop_min_coverage)
         if planes and not (focal and focal > 0):
             raise ValueError(f"planes shards need the renders' focal length, got {focal}")
         self.planes = bool(planes)
@@ -198,7 +203,7 @@ class PairStream(IterableDataset):
         if self.crop_size:
             c = self.crop_size
             if self.random_crop:
-                y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+                y0, x0 = self._crop_position(arrays["mask"], row, c, rng)
             else:
                 y0, x0 = (h - c) // 2, (w - c) // 2
             sl = (row, slice(y0, y0 + c), slice(x0, x0 + c))
@@ -222,6 +227,22 @@ class PairStream(IterableDataset):
         if self.planes:
             sample["coords"] = chw(items[3])
         return sample
+
+    def _crop_position(self, mask: np.ndarray, row: int, c: int, rng: np.random.Generator) -> tuple[int, int]:
+        """(y0, x0) of a random crop (``crop_min_coverage``, see the class docstring)."""
+        h, w = self.image_size
+        draw = lambda: (int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1)))  # noqa: E731
+        if self.crop_min_coverage <= 0:
+            return draw()
+        best, best_cov = None, -1.0
+        for _ in range(8):
+            y0, x0 = draw()
+            cov = float(np.asarray(mask[row, y0:y0 + c, x0:x0 + c]).mean())
+            if cov >= self.crop_min_coverage:
+                return y0, x0
+            if cov > best_cov:
+                best, best_cov = (y0, x0), cov
+        return best
 
     def __iter__(self):
         epoch = self.epoch
@@ -247,6 +268,7 @@ class Pix2PixDataModule(L.LightningDataModule):
         crop_size: square training crop side (multiple of 4); None trains on full renders.
         val_crop_size: centred validation crop; None validates on full renders.
         flips: ``"auto"`` (the flips the dataset's light allows), ``"none"``, or a list.
+        crop_min_coverage: covered fraction a training crop should reach (:class:`PairStream`).
         interleave: shards pooled per shuffle group (train).
         max_val_pairs: fixed evenly spread validation subset (CPU budgets); None for all.
         num_workers, pin_memory, persistent_workers, prefetch_factor: DataLoader options.
@@ -263,6 +285,7 @@ class Pix2PixDataModule(L.LightningDataModule):
         crop_size: int | None = None,
         val_crop_size: int | None = None,
         flips: str | Sequence[str] | None = "auto",
+        crop_min_coverage: float = 0.0,
         interleave: int = 4,
         max_val_pairs: int | None = None,
         num_workers: int = 0,
@@ -280,6 +303,7 @@ class Pix2PixDataModule(L.LightningDataModule):
         self.crop_size = crop_size
         self.val_crop_size = val_crop_size
         self.flips_cfg = flips if isinstance(flips, str) or flips is None else list(flips)
+        self.crop_min_coverage = float(crop_min_coverage)
         self.interleave = interleave
         self.max_val_pairs = max_val_pairs
         self.num_workers = int(num_workers)
@@ -340,6 +364,7 @@ class Pix2PixDataModule(L.LightningDataModule):
             rank=rank,
             world_size=world,
             planes=self.planes,
+            crop_min_coverage=self.crop_min_coverage if train else 0.0,
             focal=render_focal(manifest.get("render"), manifest["image_size"]) if self.planes else None,
         )
 

@@ -222,6 +222,20 @@ def test_stream_yields_coordinates_of_its_crops(planes_root):
     assert flipped.train_set.flips == ["hflip", "vflip", "transpose"]
 
 
+def test_crops_can_be_drawn_on_the_surface(planes_root):
+    from pix2pix.datamodule import Pix2PixDataModule
+
+    def coverage(min_cov):
+        dm = Pix2PixDataModule(planes_root, noise_level=0.01, batch_size=2, crop_size=12, flips="none",
+                               crop_min_coverage=min_cov)
+        dm.setup("fit")
+        return [float(s["mask"].float().mean()) for _ in range(3) for s in dm.train_set]
+
+    plain, focused = coverage(0.0), coverage(0.9)
+    assert np.mean(focused) > np.mean(plain) + 0.1
+    assert np.mean(np.asarray(focused) >= 0.9) > 0.8
+
+
 def test_planes_training_logs_geometry_and_lambda_depth_moves_it(planes_root, tmp_path):
     from pix2pix.datamodule import Pix2PixDataModule
     from pix2pix.module import Pix2PixModule
