@@ -79,7 +79,12 @@ def test_group_options_instantiate(group, tmp_path, wandb_offline_env):
     for option in GROUPS[group]:
         extra = ["trainer.accelerator=cpu"] if group == "trainer" else []
         cfg = compose_train([f"{group}={option}", f"output_dir={tmp_path}", *extra])
-        if group == "data":
+        if group == "data" and option == "onthefly":  # pairs rendered from stored clouds
+            from experiments.onthefly import OnTheFlyDataModule
+
+            dm = hydra.utils.instantiate(cfg.data, noise_level=0.01)
+            assert isinstance(dm, OnTheFlyDataModule) and dm.crop_size == cfg.model.train_crop_size
+        elif group == "data":
             dm = hydra.utils.instantiate(cfg.data)
             assert isinstance(dm, Pix2PixDataModule) and dm.crop_size == cfg.model.train_crop_size
         elif group == "trainer":
