@@ -40,8 +40,9 @@ The ``planes`` channel (batches with ``coords``, :mod:`pix2pix.datamodule`): eve
 plane whose inverse depth at the pixel is ``a_0 x + a_1 y + a_2``. Two terms can join the L1 on
 the channels, over the surface pixels (covered by the clean and the noisy render): ``lambda_depth``
 x the L1 of that implied inverse depth against the clean render's (the quantity the plane fusion
-reads), and ``lambda_normal`` x the mean ``1 - cos`` between the output's and the clean planes'
-directions (their normals). Validation then adds, for the output and the noisy input, the
+reads), and ``lambda_normal`` x the L1 between the output's and the clean planes' unit
+directions (their normals; mean over the 3 components). A generator that takes ``coords``
+(:class:`pix2pix.networks.PlanesGenerator`) gets the batch's pixel coordinates. Validation then adds, for the output and the noisy input, the
 geometry the planes imply (:func:`pix2pix.metrics.planes_metric_sums`): ``val/depth_err`` (mean
 |z - z_clean| in bounding-box diagonals, capped at 0.05), ``val/depth_bias``,
 ``val/depth_within_1e-3``, ``val/normal_err_deg``, ``val/surface_l1``, ``val/surface_smape``,
@@ -72,7 +73,7 @@ from .metrics import l1 as l1_metric
 from .metrics import planes_inverse_depth, planes_metric_sums, surface_pixels
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered
+from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered, generator_from_config
 from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
@@ -135,7 +136,7 @@ class Pix2PixModule(L.LightningModule):
         init_from: warm-start the generator's weights from this ``.ckpt`` or ``.onnx`` file.
         lambda_depth: weight of the L1 of the implied inverse depth (planes batches, see the
             module docstring).
-        lambda_normal: weight of the planes' ``1 - cos`` direction term (planes batches).
+        lambda_normal: weight of the L1 of the planes' unit directions (planes batches).
     """
 
     def __init__(
@@ -216,7 +217,7 @@ class Pix2PixModule(L.LightningModule):
         noisy, clean = batch["noisy"], batch["clean"]
         opts = self._opts()
         opt_g = opts[0]
-        image, logit = _image_and_coverage(self.generator, noisy)
+        image, logit = _image_and_coverage(self.generator, noisy, batch.get("coords"))
         logs: dict[str, torch.Tensor] = {}
         if logit is None:
             fake = l1_image = image
@@ -246,11 +247,12 @@ class Pix2PixModule(L.LightningModule):
             surf = surface_pixels(noisy, clean)
             if bool(surf.any()):
                 loss_depth = (planes_inverse_depth(l1_image, coords) - planes_inverse_depth(clean, coords)).abs()[surf].mean()
-                cos = F.cosine_similarity(l1_image, clean, dim=1, eps=1e-8)
-                loss_normal = (1.0 - cos)[surf].mean()
+                n_out = F.normalize(l1_image, dim=1, eps=1e-8)
+                n_clean = F.normalize(clean, dim=1, eps=1e-8)
+                loss_normal = (n_out - n_clean).abs().mean(1)[surf].mean()
                 loss_g = loss_g + lam_d * loss_depth + lam_n * loss_normal
                 logs["train/depth_l1"] = loss_depth.detach()
-                logs["train/normal_1mcos"] = loss_normal.detach()
+                logs["train/normal_l1"] = loss_normal.detach()
         if logit is not None:
             loss_cov = F.binary_cross_entropy_with_logits(logit, clean_cov.to(logit.dtype))
             loss_g = loss_g + self.hparams.lambda_coverage * loss_cov
@@ -300,7 +302,7 @@ class Pix2PixModule(L.LightningModule):
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         noisy, clean = batch["noisy"], batch["clean"]
         mask = batch.get("mask")
-        out, logit = _image_and_coverage(self.generator, noisy)
+        out, logit = _image_and_coverage(self.generator, noisy, batch.get("coords"))
         if logit is not None:
             out, gate = apply_coverage(out, logit), logit > 0
             either = covered(noisy) | covered(clean)
@@ -382,6 +384,11 @@ class Pix2PixModule(L.LightningModule):
         dm = getattr(self.trainer, "datamodule", None)
         if dm is not None and hasattr(dm, "info"):
             self.data_info = dm.info()
+        fov = getattr(self.generator, "fov_deg", None)
+        data_fov = (self.data_info.get("render") or {}).get("fov_deg")
+        if fov is not None and data_fov is not None and abs(float(fov) - float(data_fov)) > 1e-6:
+            raise ValueError(f"the generator's fov_deg {fov} is not the data's field of view {data_fov}: "
+                             "set model.generator.fov_deg")
 
     def export_info(self) -> dict[str, Any]:
         """Everything needed to rebuild G and describe it (JSON-able)."""
@@ -410,7 +417,7 @@ class Pix2PixModule(L.LightningModule):
         """Rebuild the module (G, D, hyperparameters, weights) from a checkpoint, without Hydra."""
         ckpt = _read_checkpoint(path, map_location)
         info = ckpt[CHECKPOINT_KEY]
-        gen = ResNetGenerator.from_config(info["generator"])
+        gen = generator_from_config(info["generator"])
         disc = PatchDiscriminator.from_config(info["discriminator"]) if info.get("discriminator") else None
         # init_from=None: the checkpoint holds the weights (the warm-start file may be gone)
         return cls.load_from_checkpoint(path, map_location=map_location, generator=gen,
@@ -434,12 +441,22 @@ def _planes_means(sums: dict[str, torch.Tensor]) -> dict[str, float]:
     return out
 
 
-def _image_and_coverage(generator: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+def _image_and_coverage(generator: nn.Module, x: torch.Tensor,
+                        coords: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(ungated image, coverage logit or None) of any generator (one without a coverage head,
-    or another image-to-image network, gives (G(x), None))."""
+    or another image-to-image network, gives (G(x), None)); ``coords`` (the batch's pixel
+    coordinates) go to a generator that takes them."""
     if hasattr(generator, "forward_with_coverage"):
+        if coords is not None and _takes_coords(generator):
+            return generator.forward_with_coverage(x, coords)
         return generator.forward_with_coverage(x)
     return generator(x), None
+
+
+def _takes_coords(generator: nn.Module) -> bool:
+    import inspect
+
+    return "coords" in inspect.signature(generator.forward_with_coverage).parameters
 
 
 def load_generator_weights(generator: nn.Module, path: str | Path) -> dict[str, Any]:
@@ -508,7 +525,7 @@ def load_generator(path: str | Path, map_location: str = "cpu") -> tuple[ResNetG
     info = dict(ckpt[CHECKPOINT_KEY])
     if not info.get("generator"):
         raise ValueError(f"{path}: the checkpoint does not describe its generator")
-    gen = ResNetGenerator.from_config(info["generator"])
+    gen = generator_from_config(info["generator"])
     state = _generator_state(ckpt)
     try:
         gen.load_state_dict(state)

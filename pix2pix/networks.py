@@ -29,7 +29,8 @@ from torch import nn
 from .blocks import Down, Head, ResidualBlock, Stem, Up
 from .norms import NormFactory, PixelNorm, build_norm, norm_spec
 
-__all__ = ["ResNetGenerator", "PatchDiscriminator", "init_xavier", "covered", "apply_coverage", "SIZE_MULTIPLE"]
+__all__ = ["ResNetGenerator", "PatchDiscriminator", "PlanesGenerator", "generator_from_config", "image_coords",
+           "init_xavier", "covered", "apply_coverage", "SIZE_MULTIPLE"]
 
 #: H and W of generator inputs must be multiples of this (two stride-2 downsamplings).
 SIZE_MULTIPLE = 4
@@ -349,3 +350,121 @@ class PatchDiscriminator(nn.Module):
             check_image_batch(x, self.in_channels, multiple=1, min_size=self.min_input_size,
                               who=type(self).__name__)
         return self.model(x)
+
+
+# ------------------------------------------------------------------------------ planes channel
+def image_coords(x: torch.Tensor, fov_deg: float) -> torch.Tensor:
+    """Normalised image coordinates (1, 2, H, W) of the pixel centres of full renders ``x``
+    (B, C, H, W): ``(u - W/2) / f`` and ``(v - H/2) / f`` with ``u = column + 0.5``,
+    ``f = 0.5 W / tan(fov / 2)`` (the cameras of ``dss.cameras.look_at`` with the render spec's
+    horizontal field of view). Tensor operations on ``x``'s shape only, so H and W stay dynamic
+    axes of an ONNX export."""
+    import math
+
+    t = math.tan(math.radians(float(fov_deg)) / 2)
+    ones_w = torch.ones_like(x[:1, :1, :1, :])  # (1, 1, 1, W)
+    ones_h = torch.ones_like(x[:1, :1, :, :1])  # (1, 1, H, 1)
+    w = ones_w.sum(3, keepdim=True)
+    h = ones_h.sum(2, keepdim=True)
+    u = ones_w.cumsum(3) - 0.5
+    v = ones_h.cumsum(2) - 0.5
+    xs = (2.0 * u / w - 1.0) * t  # (u - W/2) / (0.5 W / t)
+    ys = (v - 0.5 * h) * (2.0 * t / w)
+    return torch.cat([xs * ones_h, ys * ones_w], dim=1)
+
+
+class PlanesGenerator(nn.Module):
+    """A :class:`ResNetGenerator` for renders in the ``planes`` channel, working on per-pixel
+    inverse depth and normal instead of the raw plane coefficients.
+
+    A planes pixel holds ``a`` with ``1/z = a . (x, y, 1)`` at its normalised image coordinates
+    ``(x, y)``; the inverse depth at the pixel is therefore entangled with the pixel's position
+    (``a_0 x`` reaches the size of ``1/z`` itself at a tilted surface near the image border), which
+    a convolutional network, blind to absolute position, cannot undo: averaging the planes of
+    neighbouring pixels extrapolates their noisy normals instead of fitting their depths. This
+    wrapper feeds the network, per pixel, ``inv = a . (x, y, 1)`` and the unit normal facing the
+    camera ``m = -a / |a|`` (4 channels; 0 on the background), lets it predict corrections to
+    both (residual), and turns the result back into a plane through the corrected point with the
+    corrected normal: ``a' = m' inv' / (m' . (x, y, 1))`` (``|m' . (x, y, 1)|`` kept at least
+    ``min_cos |(x, y, 1)|``, as :func:`dss.shading.plane_coefficients` does). The identity
+    network gives back its input exactly, except planes within ``min_cos`` of edge-on (clamped
+    like the renderer's own). Pixels the input leaves as background stay 0.
+
+    ``(x, y)`` come from ``coords`` (B, 2, H, W) when given (training crops, whose pixels are not
+    centred), else from the image size and ``fov_deg`` (full renders: the pipeline and the ONNX
+    export). Args as :class:`ResNetGenerator` (``in_channels``/``out_channels``/``residual`` are
+    fixed: 4, 4, True), ``input_mean``/``input_std`` per feature (inv, m_x, m_y, m_z).
+
+    Shapes: (B, 3, H, W) planes -> (B, 3, H, W) planes.
+    """
+
+    size_multiple = SIZE_MULTIPLE
+    in_channels = 3
+
+    def __init__(self, ngf: int = 16, n_blocks: int = 6, norm_layer: NormFactory = PixelNorm,
+                 input_mean: float | list[float] = (0.4, 0.0, 0.0, -0.3),
+                 input_std: float | list[float] = (0.5, 0.5, 0.5, 0.5), init_gain: float = 1.0,
+                 fov_deg: float = 40.0, min_cos: float = 0.05, **_ignored: Any):
+        super().__init__()
+        if not 1.0 <= float(fov_deg) <= 170.0:
+            raise ValueError(f"fov_deg must be in [1, 170], got {fov_deg}")
+        self.fov_deg, self.min_cos = float(fov_deg), float(min_cos)
+        mean = input_mean if isinstance(input_mean, int | float) else list(input_mean)
+        std = input_std if isinstance(input_std, int | float) else list(input_std)
+        self.core = ResNetGenerator(in_channels=4, out_channels=4, ngf=ngf, n_blocks=n_blocks, norm_layer=norm_layer,
+                                    residual=True, input_mean=mean, input_std=std, init_gain=init_gain)
+        c = self.core.config()
+        self._config = {"kind": "planes", "ngf": c["ngf"], "n_blocks": c["n_blocks"], "norm_layer": c["norm_layer"],
+                        "input_mean": c["input_mean"], "input_std": c["input_std"], "init_gain": c["init_gain"],
+                        "fov_deg": self.fov_deg, "min_cos": self.min_cos, "in_channels": 3, "out_channels": 3,
+                        "residual": True, "coverage_head": False}
+
+    def config(self) -> dict[str, Any]:
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
+
+    @classmethod
+    def from_config(cls, config: dict[str, Any]) -> PlanesGenerator:
+        kwargs = {k: v for k, v in config.items() if k not in ("kind", "in_channels", "out_channels", "residual",
+                                                              "coverage_head")}
+        kwargs["norm_layer"] = build_norm(kwargs["norm_layer"])
+        return cls(**kwargs)
+
+    def features(self, a: torch.Tensor, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(inv (B, 1, H, W), m (B, 3, H, W)) of planes ``a`` (B, 3, H, W) at ``coords``."""
+        inv = a[:, 0:1] * coords[:, 0:1] + a[:, 1:2] * coords[:, 1:2] + a[:, 2:3]
+        norm = a.norm(dim=1, keepdim=True)
+        m = -a / norm.clamp_min(1e-12)
+        return inv, m
+
+    def planes(self, inv: torch.Tensor, m: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        """Planes (B, 3, H, W) through the points at inverse depth ``inv`` on the pixels' rays
+        with normals ``m`` (unit, facing the camera)."""
+        ray = torch.cat([coords, torch.ones_like(coords[:, :1])], dim=1)
+        d = (m * ray).sum(1, keepdim=True)
+        lim = self.min_cos * ray.norm(dim=1, keepdim=True)
+        d = torch.where(d < 0, torch.minimum(d, -lim), torch.maximum(d, lim))
+        return m * inv / d
+
+    def forward_with_coverage(self, x: torch.Tensor, coords: torch.Tensor | None = None):
+        if _checks_enabled():
+            check_image_batch(x, 3, who=type(self).__name__)
+        if coords is None:
+            coords = image_coords(x, self.fov_deg)
+        covered_in = (x.abs().amax(dim=1, keepdim=True) > 0).to(x.dtype)
+        inv, m = self.features(x, coords)
+        feat = torch.cat([inv, m], dim=1) * covered_in
+        out = self.core(feat)
+        inv2 = out[:, :1]
+        m2 = torch.nn.functional.normalize(out[:, 1:], dim=1, eps=1e-6)
+        a = self.planes(inv2, m2, coords.expand(x.shape[0], -1, -1, -1)) * covered_in
+        return a, None
+
+    def forward(self, x: torch.Tensor, coords: torch.Tensor | None = None) -> torch.Tensor:
+        return self.forward_with_coverage(x, coords)[0]
+
+
+def generator_from_config(config: dict[str, Any]) -> nn.Module:
+    """The generator a :meth:`config` describes (:class:`PlanesGenerator` for ``kind: planes``)."""
+    if config.get("kind") == "planes":
+        return PlanesGenerator.from_config(config)
+    return ResNetGenerator.from_config(config)

@@ -61,6 +61,69 @@ def test_per_channel_normalisation_round_trips_and_starts_at_the_identity(tmp_pa
         ResNetGenerator(ngf=8, n_blocks=1, input_std=[1.0, 0.0, 1.0])
 
 
+# ---- the planes generator ------------------------------------------------------------------
+def _planes_batch(b=2, h=16, w=16, seed=0):
+    """Planes of random surfaces facing the camera at depth ~1 (none near edge-on), a background
+    corner."""
+    g = torch.Generator().manual_seed(seed)
+    n = torch.nn.functional.normalize(torch.randn(b, 3, h, w, generator=g).clamp(-2, 2) * 0.2
+                                      + torch.tensor([0.0, 0.0, -1.0]).view(1, 3, 1, 1), dim=1)
+    z = 1.0 + 0.2 * torch.rand(b, 1, h, w, generator=g)
+    from pix2pix.networks import image_coords
+
+    xy = image_coords(torch.zeros(1, 1, h, w), 40.0)
+    ray = torch.cat([xy, torch.ones_like(xy[:, :1])], 1)
+    a = n / (n * ray * z).sum(1, keepdim=True)  # a = n / (n . p), p = z (x, y, 1)
+    a[:, :, :3, :3] = 0
+    return a
+
+
+def test_planes_generator_reads_depth_and_normal_and_writes_planes_back(tmp_path):
+    from pix2pix.networks import PlanesGenerator, generator_from_config, image_coords
+
+    a = _planes_batch()
+    g = PlanesGenerator(ngf=8, n_blocks=1).eval()
+    torch.testing.assert_close(g(a), a, atol=1e-5, rtol=1e-5)  # zero head: the identity
+    inv, m = g.features(a, image_coords(a, 40.0))
+    from pix2pix.metrics import planes_inverse_depth as inv_of
+
+    torch.testing.assert_close(inv[:, 0], inv_of(a, image_coords(a, 40.0).expand(2, -1, -1, -1)))
+    torch.testing.assert_close(g.planes(inv, m, image_coords(a, 40.0)), a, atol=1e-5, rtol=1e-5)
+    with torch.no_grad():
+        g.core.head[1].weight.normal_(0, 0.05)
+    out = g(a)
+    assert torch.all(out[:, :, :3, :3] == 0)  # the input's background stays background
+    # a crop's own coordinates matter: the same pixels off the image centre give other planes
+    xy_off = image_coords(torch.zeros(1, 1, 32, 32), 40.0)[..., :16, :16]
+    assert not torch.allclose(g(a, xy_off), out)
+    g2 = generator_from_config(json.loads(json.dumps(g.config())))
+    g2.load_state_dict(g.state_dict())
+    torch.testing.assert_close(g2.eval()(a), out)
+    meta = build_metadata({"generator": g.config(), "data": {"render": planes_render_block()}})
+    path = export_onnx(g, tmp_path / "pg.onnx", meta)
+    den = OnnxDenoiser(path, intra_op_num_threads=1)
+    for b, h, w in ((1, 16, 16), (2, 24, 40)):  # dynamic sizes: the coordinates come from the graph
+        x = _planes_batch(b, h, w, seed=h)
+        np.testing.assert_allclose(den(x.numpy()), g(x).detach().numpy(), atol=2e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="fov_deg"):
+        PlanesGenerator(fov_deg=0.0)
+
+
+def test_planes_generator_refuses_another_field_of_view(planes_root, tmp_path):
+    import lightning as L
+
+    from pix2pix.datamodule import Pix2PixDataModule
+    from pix2pix.module import Pix2PixModule
+    from pix2pix.networks import PlanesGenerator
+
+    m = Pix2PixModule(PlanesGenerator(ngf=4, n_blocks=1, fov_deg=60.0), None, lambda_gan=0.0, num_grid_images=0)
+    dm = Pix2PixDataModule(planes_root, noise_level=0.01, batch_size=2, crop_size=16)
+    tr = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                   enable_model_summary=False, default_root_dir=tmp_path)
+    with pytest.raises(ValueError, match="field of view"):
+        tr.fit(m, datamodule=dm)
+
+
 # ---- flips ---------------------------------------------------------------------------------
 def _mirror(points, normals, cams, m):
     """The cloud mirrored by the camera-space linear map ``m`` (3, 3) through camera 0."""
