@@ -21,6 +21,7 @@ directly (``residual=False``), which is the ``paper`` preset; the CPU presets us
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -374,7 +375,7 @@ def image_coords(x: torch.Tensor, fov_deg: float) -> torch.Tensor:
 
 
 class PlanesGenerator(nn.Module):
-    """A :class:`ResNetGenerator` for renders in the ``planes`` channel, working on per-pixel
+    """The Pix2Pix ResNet generator for renders in the ``planes`` channel, working on per-pixel
     inverse depth and normal instead of the raw plane coefficients.
 
     A planes pixel holds ``a`` with ``1/z = a . (x, y, 1)`` at its normalised image coordinates
@@ -382,18 +383,28 @@ class PlanesGenerator(nn.Module):
     (``a_0 x`` reaches the size of ``1/z`` itself at a tilted surface near the image border), which
     a convolutional network, blind to absolute position, cannot undo: averaging the planes of
     neighbouring pixels extrapolates their noisy normals instead of fitting their depths. This
-    wrapper feeds the network, per pixel, ``inv = a . (x, y, 1)`` and the unit normal facing the
-    camera ``m = -a / |a|`` (4 channels; 0 on the background), lets it predict corrections to
-    both (residual), and turns the result back into a plane through the corrected point with the
-    corrected normal: ``a' = m' inv' / (m' . (x, y, 1))`` (``|m' . (x, y, 1)|`` kept at least
-    ``min_cos |(x, y, 1)|``, as :func:`dss.shading.plane_coefficients` does). The identity
-    network gives back its input exactly, except planes within ``min_cos`` of edge-on (clamped
-    like the renderer's own). Pixels the input leaves as background stay 0.
+    generator reads, per pixel, ``inv = a . (x, y, 1)`` and the unit normal facing the camera
+    ``m = -a / |a|`` (0 on the background), corrects both and writes the plane through the
+    corrected point with the corrected normal back: ``a' = m' inv' / (m' . (x, y, 1))``
+    (``|m' . (x, y, 1)|`` kept at least ``min_cos |(x, y, 1)|``, as
+    :func:`dss.shading.plane_coefficients` does). Pixels the input leaves as background stay 0.
+
+    The correction is residual, but on a smoothed base: the 4 features blurred by a Gaussian of
+    ``base_blur_px`` pixels over the covered pixels (normalised convolution; 0: the features
+    themselves). A ResNet generator's output path comes from its quarter-resolution bottleneck,
+    so it cannot reproduce (and subtract) the per-pixel noise of a residual base; measured on
+    the validation renders at 1% noise, a 4 px blur alone takes the implied depth's median error
+    from 0.0094 to 0.0067 and the normals' from 31 to 21 degrees. The network sees the raw and the
+    blurred features (8 channels: ResNetGenerator's stem, downs, blocks and ups) and, with
+    ``skip``, its full-resolution stem features again before the head (what the blur removed at
+    occlusion edges can come back). The head starts at zero: the untrained generator outputs the
+    blurred base (exactly the input with ``base_blur_px=0``, except planes within ``min_cos`` of
+    edge-on, clamped like the renderer's own).
 
     ``(x, y)`` come from ``coords`` (B, 2, H, W) when given (training crops, whose pixels are not
     centred), else from the image size and ``fov_deg`` (full renders: the pipeline and the ONNX
-    export). Args as :class:`ResNetGenerator` (``in_channels``/``out_channels``/``residual`` are
-    fixed: 4, 4, True), ``input_mean``/``input_std`` per feature (inv, m_x, m_y, m_z).
+    export). ``input_mean``/``input_std``: per feature (inv, m_x, m_y, m_z), for both the raw and
+    the blurred copy.
 
     Shapes: (B, 3, H, W) planes -> (B, 3, H, W) planes.
     """
@@ -402,22 +413,45 @@ class PlanesGenerator(nn.Module):
     in_channels = 3
 
     def __init__(self, ngf: int = 16, n_blocks: int = 6, norm_layer: NormFactory = PixelNorm,
-                 input_mean: float | list[float] = (0.4, 0.0, 0.0, -0.3),
-                 input_std: float | list[float] = (0.5, 0.5, 0.5, 0.5), init_gain: float = 1.0,
-                 fov_deg: float = 40.0, min_cos: float = 0.05, **_ignored: Any):
+                 input_mean: float | list[float] = (0.4, 0.0, 0.0, -0.25),
+                 input_std: float | list[float] = (0.5, 0.4, 0.4, 0.4), init_gain: float = 1.0,
+                 fov_deg: float = 40.0, min_cos: float = 0.05, base_blur_px: float = 3.0, skip: bool = True,
+                 **_ignored: Any):
         super().__init__()
         if not 1.0 <= float(fov_deg) <= 170.0:
             raise ValueError(f"fov_deg must be in [1, 170], got {fov_deg}")
+        if float(base_blur_px) < 0:
+            raise ValueError(f"base_blur_px must be >= 0, got {base_blur_px}")
+        if n_blocks < 0 or ngf < 1:
+            raise ValueError(f"need ngf >= 1 and n_blocks >= 0, got ngf={ngf}, n_blocks={n_blocks}")
+        mean = _channel_values(input_mean if isinstance(input_mean, int | float) else list(input_mean), 4, "input_mean")
+        std = _channel_values(input_std if isinstance(input_std, int | float) else list(input_std), 4, "input_std")
+        mean = [mean] * 4 if isinstance(mean, float) else mean
+        std = [std] * 4 if isinstance(std, float) else std
+        if any(v <= 0 for v in std):
+            raise ValueError(f"input_std must be > 0, got {input_std}")
         self.fov_deg, self.min_cos = float(fov_deg), float(min_cos)
-        mean = input_mean if isinstance(input_mean, int | float) else list(input_mean)
-        std = input_std if isinstance(input_std, int | float) else list(input_std)
-        self.core = ResNetGenerator(in_channels=4, out_channels=4, ngf=ngf, n_blocks=n_blocks, norm_layer=norm_layer,
-                                    residual=True, input_mean=mean, input_std=std, init_gain=init_gain)
-        c = self.core.config()
-        self._config = {"kind": "planes", "ngf": c["ngf"], "n_blocks": c["n_blocks"], "norm_layer": c["norm_layer"],
-                        "input_mean": c["input_mean"], "input_std": c["input_std"], "init_gain": c["init_gain"],
-                        "fov_deg": self.fov_deg, "min_cos": self.min_cos, "in_channels": 3, "out_channels": 3,
-                        "residual": True, "coverage_head": False}
+        self.base_blur_px, self.skip = float(base_blur_px), bool(skip)
+        self.register_buffer("_mean", torch.tensor(mean).view(1, 4, 1, 1), persistent=False)
+        self.register_buffer("_std", torch.tensor(std).view(1, 4, 1, 1), persistent=False)
+        r = max(1, int(math.ceil(3 * self.base_blur_px))) if self.base_blur_px > 0 else 0
+        k = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float32) ** 2 / (2 * max(self.base_blur_px, 1e-6) ** 2))
+        k = (k / k.sum()).view(1, 1, 1, -1).repeat(5, 1, 1, 1)  # the 4 features and the coverage
+        self.register_buffer("_blur_w", k.contiguous(), persistent=False)
+        self.register_buffer("_blur_h", k.transpose(2, 3).contiguous(), persistent=False)
+        self.stem = Stem(8, ngf, norm_layer)
+        self.down1 = Down(ngf, 2 * ngf, norm_layer)
+        self.down2 = Down(2 * ngf, 4 * ngf, norm_layer)
+        self.blocks = nn.Sequential(*[ResidualBlock(4 * ngf, norm_layer) for _ in range(n_blocks)])
+        self.up1 = Up(4 * ngf, 2 * ngf, norm_layer)
+        self.up2 = Up(2 * ngf, ngf, norm_layer)
+        self.head = Head(2 * ngf if self.skip else ngf, 4)
+        init_xavier(self, init_gain)
+        nn.init.zeros_(self.head[1].weight)
+        self._config = {"kind": "planes", "ngf": int(ngf), "n_blocks": int(n_blocks), "norm_layer": norm_spec(norm_layer),
+                        "input_mean": mean, "input_std": std, "init_gain": float(init_gain), "fov_deg": self.fov_deg,
+                        "min_cos": self.min_cos, "base_blur_px": self.base_blur_px, "skip": self.skip,
+                        "in_channels": 3, "out_channels": 3, "residual": True, "coverage_head": False}
 
     def config(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
@@ -432,8 +466,7 @@ class PlanesGenerator(nn.Module):
     def features(self, a: torch.Tensor, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(inv (B, 1, H, W), m (B, 3, H, W)) of planes ``a`` (B, 3, H, W) at ``coords``."""
         inv = a[:, 0:1] * coords[:, 0:1] + a[:, 1:2] * coords[:, 1:2] + a[:, 2:3]
-        norm = a.norm(dim=1, keepdim=True)
-        m = -a / norm.clamp_min(1e-12)
+        m = -a / a.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return inv, m
 
     def planes(self, inv: torch.Tensor, m: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
@@ -445,18 +478,35 @@ class PlanesGenerator(nn.Module):
         d = torch.where(d < 0, torch.minimum(d, -lim), torch.maximum(d, lim))
         return m * inv / d
 
+    def _blurred(self, f: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+        """Normalised Gaussian blur of features ``f`` (B, C, H, W) over the covered pixels."""
+        if self.base_blur_px <= 0:
+            return f
+        r = (self._blur_w.shape[-1] - 1) // 2
+        x = torch.cat([f * cov, cov], dim=1)
+        x = nn.functional.conv2d(x, self._blur_w, padding=(0, r), groups=5)
+        x = nn.functional.conv2d(x, self._blur_h, padding=(r, 0), groups=5)
+        w = x[:, -1:]
+        return torch.where(w > 1e-3, x[:, :-1] / w.clamp_min(1e-3), f)
+
     def forward_with_coverage(self, x: torch.Tensor, coords: torch.Tensor | None = None):
         if _checks_enabled():
             check_image_batch(x, 3, who=type(self).__name__)
         if coords is None:
             coords = image_coords(x, self.fov_deg)
-        covered_in = (x.abs().amax(dim=1, keepdim=True) > 0).to(x.dtype)
+        cov = (x.abs().amax(dim=1, keepdim=True) > 0).to(x.dtype)
         inv, m = self.features(x, coords)
-        feat = torch.cat([inv, m], dim=1) * covered_in
-        out = self.core(feat)
-        inv2 = out[:, :1]
+        raw = torch.cat([inv, m], dim=1) * cov
+        base = self._blurred(raw, cov)
+        raw_n = (raw - self._mean) / self._std
+        base_n = (base - self._mean) / self._std
+        y0 = self.stem(torch.cat([raw_n, base_n], dim=1))
+        y = self.up2(self.up1(self.blocks(self.down2(self.down1(y0)))))
+        if self.skip:
+            y = torch.cat([y, y0], dim=1)
+        out = (base_n + self.head(y)) * self._std + self._mean
         m2 = torch.nn.functional.normalize(out[:, 1:], dim=1, eps=1e-6)
-        a = self.planes(inv2, m2, coords.expand(x.shape[0], -1, -1, -1)) * covered_in
+        a = self.planes(out[:, :1], m2, coords.expand(x.shape[0], -1, -1, -1)) * cov
         return a, None
 
     def forward(self, x: torch.Tensor, coords: torch.Tensor | None = None) -> torch.Tensor:

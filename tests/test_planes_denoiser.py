@@ -82,29 +82,42 @@ def test_planes_generator_reads_depth_and_normal_and_writes_planes_back(tmp_path
     from pix2pix.networks import PlanesGenerator, generator_from_config, image_coords
 
     a = _planes_batch()
-    g = PlanesGenerator(ngf=8, n_blocks=1).eval()
-    torch.testing.assert_close(g(a), a, atol=1e-5, rtol=1e-5)  # zero head: the identity
+    g = PlanesGenerator(ngf=8, n_blocks=1, base_blur_px=0).eval()
+    torch.testing.assert_close(g(a), a, atol=1e-5, rtol=1e-5)  # zero head, no blur: the identity
     inv, m = g.features(a, image_coords(a, 40.0))
     from pix2pix.metrics import planes_inverse_depth as inv_of
 
     torch.testing.assert_close(inv[:, 0], inv_of(a, image_coords(a, 40.0).expand(2, -1, -1, -1)))
     torch.testing.assert_close(g.planes(inv, m, image_coords(a, 40.0)), a, atol=1e-5, rtol=1e-5)
+    # the blurred base keeps a plane a plane (a linear inverse depth, one normal) away from edges
+    n = torch.nn.functional.normalize(torch.tensor([0.3, -0.2, -1.0]), dim=0)
+    xy = image_coords(torch.zeros(1, 1, 32, 32), 40.0)
+    flat = (n / (n @ torch.tensor([0.1, 0.0, 1.2]))).view(1, 3, 1, 1).expand(1, 3, 32, 32).clone()
+    flat[:, :, :, :4] = 0  # a background strip
+    blur = PlanesGenerator(ngf=8, n_blocks=1, base_blur_px=2.0).eval()
+    inner = (..., slice(6, -6), slice(10, -6))  # 3 blur sigmas from the border and the background
+    torch.testing.assert_close(blur(flat)[inner], flat[inner], atol=1e-5, rtol=1e-4)
+    assert torch.all(blur(flat)[..., :4] == 0)
+    noisy = _planes_batch(1, 32, 32, seed=3)
+    inv_n = inv_of(noisy, xy)
+    inv_b = inv_of(blur(noisy), xy)
+    assert float((inv_b[:, :, 1:] - inv_b[:, :, :-1]).abs().mean()) < 0.5 * float((inv_n[:, :, 1:] - inv_n[:, :, :-1]).abs().mean())
+    # trained weights: the background stays background; a crop's own coordinates matter
     with torch.no_grad():
-        g.core.head[1].weight.normal_(0, 0.05)
-    out = g(a)
-    assert torch.all(out[:, :, :3, :3] == 0)  # the input's background stays background
-    # a crop's own coordinates matter: the same pixels off the image centre give other planes
+        blur.head[1].weight.normal_(0, 0.05)
+    out = blur(a)
+    assert torch.all(out[:, :, :3, :3] == 0)
     xy_off = image_coords(torch.zeros(1, 1, 32, 32), 40.0)[..., :16, :16]
-    assert not torch.allclose(g(a, xy_off), out)
-    g2 = generator_from_config(json.loads(json.dumps(g.config())))
-    g2.load_state_dict(g.state_dict())
+    assert not torch.allclose(blur(a, xy_off), out)
+    g2 = generator_from_config(json.loads(json.dumps(blur.config())))
+    g2.load_state_dict(blur.state_dict())
     torch.testing.assert_close(g2.eval()(a), out)
-    meta = build_metadata({"generator": g.config(), "data": {"render": planes_render_block()}})
-    path = export_onnx(g, tmp_path / "pg.onnx", meta)
+    meta = build_metadata({"generator": blur.config(), "data": {"render": planes_render_block()}})
+    path = export_onnx(blur, tmp_path / "pg.onnx", meta)
     den = OnnxDenoiser(path, intra_op_num_threads=1)
     for b, h, w in ((1, 16, 16), (2, 24, 40)):  # dynamic sizes: the coordinates come from the graph
         x = _planes_batch(b, h, w, seed=h)
-        np.testing.assert_allclose(den(x.numpy()), g(x).detach().numpy(), atol=2e-4, rtol=1e-4)
+        np.testing.assert_allclose(den(x.numpy()), blur(x).detach().numpy(), atol=2e-4, rtol=1e-3)
     with pytest.raises(ValueError, match="fov_deg"):
         PlanesGenerator(fov_deg=0.0)
 
