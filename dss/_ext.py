@@ -1,16 +1,24 @@
 """Build-on-first-use loader for the C++ (and, later, CUDA) kernels.
 
 The extension is compiled once with ``torch.utils.cpp_extension.load`` (ninja) and cached in
-``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``), keyed by the source hash, so
-a changed kernel rebuilds and an unchanged one loads in milliseconds. A failed build (no
-compiler, no ninja) warns once; callers then fall back to the pure-torch reference.
+``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``). Its name carries a hash of
+the sources, headers, flags, torch and Python (``dss_cpu_<hash>``), and it is built from a copy
+of the sources kept beside the build, so two installs on one machine (two clones, a worktree,
+a second venv) with the same kernel share one build, and installs with different kernels keep
+one build each instead of rebuilding each other's. A first-use compile logs one line; its
+duration is kept (:func:`build_seconds`) so that the apps can leave it out of their timings.
+A failed build (no compiler, no ninja) warns once; callers then fall back to the pure-torch
+reference.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import sys
 import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -24,7 +32,9 @@ _lock = threading.Lock()
 _cache: dict[str, object] = {}
 _failed: dict[str, str] = {}
 
-__all__ = ["load_cpu", "cpu_available", "build_error", "openmp_enabled"]
+__all__ = ["load_cpu", "cpu_available", "build_error", "openmp_enabled", "build_seconds", "hashed_name",
+           "load_hashed"]
+_build_seconds = [0.0]  # compile time spent in this process (s)
 
 
 # -ffp-contract=off: no fused multiply-adds, so the kernels round as the torch expressions they
@@ -42,19 +52,82 @@ _OPENMP_FLAGS = ["-fopenmp"]
 _openmp: dict[str, bool] = {}
 
 
+def hashed_name(base: str, sources: list[Path], flags: list[str] = (), headers: list[Path] = ()) -> str:
+    """``<base>_<hash>``: the hash covers the sources' and headers' names and bytes, the flags,
+    torch's and Python's versions, so equal kernels get equal names wherever they are installed."""
+    import torch
+
+    h = hashlib.sha256()
+    for f in sorted(set(map(Path, sources)) | set(map(Path, headers)), key=lambda p: p.name):
+        h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+    h.update(" ".join([*flags, torch.__version__, sys.version, sys.platform]).encode())
+    return f"{base}_{h.hexdigest()[:12]}"
+
+
+def _build_dir(name: str) -> Path:
+    from torch.utils.cpp_extension import _get_build_directory
+
+    return Path(_get_build_directory(name, False))
+
+
+def _stage(name: str, files: list[Path]) -> Path:
+    """Copy ``files`` into ``<build dir>/src`` (once: equal names mean equal bytes), so that the
+    build never names an install's own paths and other installs reuse it without a rebuild."""
+    src = _build_dir(name) / "src"
+    src.mkdir(parents=True, exist_ok=True)
+    for f in files:
+        dst = src / f.name
+        data = f.read_bytes()
+        if not dst.exists() or dst.read_bytes() != data:  # untouched otherwise: ninja goes by mtime
+            tmp = src / f".{f.name}.{os.getpid()}.tmp"
+            tmp.write_bytes(data)
+            os.replace(tmp, dst)
+    return src
+
+
+def load_hashed(base: str, sources: list[Path], headers: list[Path] = (), *, extra_cflags: list[str] = (),
+                extra_ldflags: list[str] = (), extra_cuda_cflags: list[str] | None = None,
+                what: str = "the C++ kernel", **kw):
+    """``torch.utils.cpp_extension.load`` under :func:`hashed_name`, from staged sources.
+
+    Logs one line when the module is not built yet (a first-use compile) and adds the build's
+    duration to :func:`build_seconds`.
+    """
+    from torch.utils.cpp_extension import LIB_EXT, load
+
+    sources, headers = [Path(s) for s in sources], [Path(h) for h in headers]
+    flags = [*extra_cflags, "|", *extra_ldflags, "|", *(extra_cuda_cflags or [])]
+    name = hashed_name(base, sources, flags, headers)
+    src = _stage(name, sources + headers)
+    compiling = not (_build_dir(name) / f"{name}{LIB_EXT}").exists()
+    if compiling:
+        log.warning("compiling %s (%s), about 30 s, once: cached in %s", what, name, _build_dir(name))
+    t0 = time.perf_counter()
+    try:
+        return load(name=name, sources=[str(src / s.name) for s in sources], extra_cflags=list(extra_cflags),
+                    extra_ldflags=list(extra_ldflags), extra_include_paths=[str(src)],
+                    verbose=bool(os.environ.get("DSS_VERBOSE_BUILD")),
+                    **({"extra_cuda_cflags": list(extra_cuda_cflags)} if extra_cuda_cflags else {}), **kw)
+    finally:
+        if compiling:
+            _build_seconds[0] += time.perf_counter() - t0
+
+
+def build_seconds() -> float:
+    """Seconds this process has spent compiling kernels (0 when every one was cached)."""
+    return _build_seconds[0]
+
+
+def _headers() -> list[Path]:
+    return sorted(_CSRC.glob("*.h"))
+
+
 def _build(name: str, sources: list[Path], **kw):
     """Compile with OpenMP when the compiler supports it, else serially (warns: 1 thread)."""
-    from torch.utils.cpp_extension import load
 
     def _load(mod_name: str, omp: bool):
-        return load(
-            name=mod_name,
-            sources=[str(s) for s in sources],
-            extra_cflags=_BASE_CFLAGS + (_OPENMP_FLAGS if omp else []),
-            extra_ldflags=_OPENMP_FLAGS if omp else [],
-            verbose=bool(os.environ.get("DSS_VERBOSE_BUILD")),
-            **kw,
-        )
+        return load_hashed(mod_name, sources, _headers(), extra_cflags=_BASE_CFLAGS + (_OPENMP_FLAGS if omp else []),
+                           extra_ldflags=_OPENMP_FLAGS if omp else [], **kw)
 
     if not os.environ.get("DSS_DISABLE_OPENMP"):
         try:

@@ -1,7 +1,9 @@
 """Build-on-first-use loader for the CUDA kernels (``dss/csrc/dss_cuda.cu`` + ``dss_cuda_bind.cpp``).
 
 Like :mod:`dss._ext`: compiled once with ``torch.utils.cpp_extension.load`` and cached in
-``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``), keyed by the source hash.
+``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) under a name that carries the
+sources' hash (:func:`dss._ext.load_hashed`), so installs with different kernels do not rebuild
+each other's.
 The kernels are compiled with ``--fmad=false`` so that no fused multiply-add changes a rounding:
 the per-pixel tests then round exactly like the CPU kernel's, and the two backends return the same
 top-K cache. When there is no GPU, a CPU-only torch build, or the build fails, :func:`load_cuda`
@@ -52,16 +54,10 @@ def _why_not() -> str | None:
 
 
 def _build():
-    from torch.utils.cpp_extension import load
+    from ._ext import load_hashed
 
-    return load(
-        name=_NAME,
-        sources=[str(s) for s in SOURCES],
-        extra_cflags=["-O3"],
-        extra_cuda_cflags=list(NVCC_FLAGS),
-        extra_include_paths=[str(_CSRC)],
-        verbose=bool(os.environ.get("DSS_VERBOSE_BUILD")),
-    )
+    return load_hashed(_NAME, list(SOURCES), sorted(_CSRC.glob("*.h")), extra_cflags=["-O3"],
+                       extra_cuda_cflags=list(NVCC_FLAGS), what="the CUDA kernels")
 
 
 def load_cuda():

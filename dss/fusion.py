@@ -22,13 +22,19 @@ visible ones:
    (0 with fewer than ``min_views`` observations): ``s0 = consistency_px`` pixel footprints at
    the point, the disagreement that pixels alone cause, but at most ``consistency_noise`` noise
    levels (images too coarse to resolve the noise cannot tell a surface from a blur of it).
-   References that disagree across views move nothing.
+   References that disagree across views move nothing;
+5. a point the references do not pin down (consistency below 1/2: unobserved, behind other
+   parts, beyond the depth window) moves ``1 - c`` of the way onto the plane of its trusted
+   neighbours (``fill_k`` nearest, weighted by their consistency, when those weights sum to at
+   least ``fill_min_weight``): the paper's visibility-weighted projection (phi = 1/(o + 1) pulls
+   occluded points onto the planes of visible ones), with consistency in place of visibility.
+   With references that nobody trusts it moves nothing.
 
 Measured on the shipped example (20K points, 1% noise, Chamfer x1e4, paper protocol), after the
-DSS optimisation (0.326): references rendered from the clean cloud take it to 0.24, the input's
-own renders leave it at 0.33 (consistency 0.04 on average); without the consistency weight the
-input's renders take it to 1.1 (the front envelope). ``python -m experiments.image_study`` has the
-per-stage numbers.
+DSS cycles (0.336): references rendered from the clean cloud take it to 0.234, the input's own
+renders leave it at 0.327 (consistency 0.04 on average); without the consistency weight the
+input's renders pulled the points to their front envelope (Chamfer above 1). Per-stage numbers:
+``python -m experiments.image_study``; docs/denoising.md.
 
 The displacement is the closed-form minimiser, per point, of the squared depth residuals
 against the references along the point's normal: a Gauss-Newton step of a point-wise image
@@ -45,11 +51,11 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from .cameras import Cameras
-from .shading import planes_inverse_depth
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FusionConfig", "PlaneObservations", "FusionSums", "FusionResult", "observe_planes", "fuse_planes"]
+__all__ = ["FusionConfig", "PlaneObservations", "FusionSums", "FusionResult", "observe_planes", "fill_from_trusted",
+           "fuse_planes"]
 
 #: ``cameras -> (planes (V, H, W, 3), coverage mask (V, H, W) bool)``: the reference in the planes channel
 PlaneReference = Callable[[Cameras], tuple[torch.Tensor, torch.Tensor]]
@@ -72,9 +78,10 @@ class FusionConfig:
         normal_k: neighbours of the PCA normals the points move along.
         image_normals: also return each point's normal as the references show it (the weighted
             mean of its views' plane normals, where it moved with consistency >= 0.5).
+        fill_k, fill_min_weight: step 5 of the module docstring (``fill_k = 0``: off).
     """
 
-    passes: int = 2
+    passes: int = 4
     batches: int = 2
     views: int = 12
     tau: float = 2.0
@@ -86,8 +93,13 @@ class FusionConfig:
     consistency_noise: float = 0.2
     normal_k: int = 16
     image_normals: bool = True
+    fill_k: int = 16
+    fill_min_weight: float = 2.0
 
     def __post_init__(self):
+        if self.fill_k < 0 or self.fill_min_weight <= 0:
+            raise ValueError(f"fusion.fill_k must be >= 0 and fill_min_weight > 0, got {self.fill_k}, "
+                             f"{self.fill_min_weight}")
         for name in ("passes", "batches", "views", "min_views", "normal_k"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"fusion.{name} must be >= 1, got {getattr(self, name)}")
@@ -210,7 +222,8 @@ class FusionResult:
         consistency: (N,) the last pass's consistency weight.
         image_normal_mask: (N,) bool, where ``normals`` came from the references.
         passes: per pass: fraction of points observed (>= 1 and >= ``min_views`` views), mean
-            consistency, mean and max |move| (bbox diagonals), the mean spread, seconds.
+            consistency, mean and max |move| (bbox diagonals), the mean spread, seconds (of
+            which rendering and mapping the references: ``reference_seconds``).
     """
 
     points: torch.Tensor
@@ -226,6 +239,29 @@ def _pca_normals(points: torch.Tensor, like: torch.Tensor, k: int) -> torch.Tens
 
     n = estimate_normals(points, k=k, orient="none").to(points.device, points.dtype)
     return torch.where((n * like).sum(1, keepdim=True) < 0, -n, n)
+
+
+def fill_from_trusted(points: torch.Tensor, normals: torch.Tensor, consistency: torch.Tensor, k: int = 16,
+                      min_weight: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step 5 of the module docstring: points (N, 3) with consistency below 1/2 move ``1 - c`` of
+    the way onto the plane through their ``k`` nearest neighbours' consistency-weighted centroid,
+    normal the neighbours' weighted mean normal (signed like the point's), where the weights sum
+    to ``min_weight`` or more. Returns (points, moved (N,) bool)."""
+    from .knn import knn
+
+    nb = knn(points, k, exclude_self=True).idx.long()
+    ok = nb >= 0
+    nb = nb.clamp_min(0)
+    w = torch.where(ok, consistency[nb], torch.zeros_like(consistency[nb]))  # (N, k)
+    W = w.sum(1)
+    centroid = (w[..., None] * points[nb]).sum(1) / W.clamp_min(1e-12)[:, None]
+    nn_ = normals[nb]
+    nn_ = torch.where((nn_ * normals[:, None]).sum(-1, keepdim=True) < 0, -nn_, nn_)
+    nrm = torch.nn.functional.normalize((w[..., None] * nn_).sum(1), dim=1)
+    dist = ((points - centroid) * nrm).sum(1)
+    moved = (W >= min_weight) & (consistency < 0.5)
+    step = torch.where(moved, (1 - consistency) * dist, torch.zeros_like(dist))
+    return points - step[:, None] * nrm, moved
 
 
 def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneReference, sample_cameras: Callable[[], Cameras],
@@ -258,25 +294,33 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
         t0 = time.perf_counter()
         n = _pca_normals(p, signs, cfg.normal_k)
         sums = FusionSums(len(p), p.device)
+        t_ref = 0.0
         for _ in range(cfg.batches):
             cams = sample_cameras().to(p.device)
             with torch.no_grad():
+                t1 = time.perf_counter()
                 planes, mask = reference(cams)
+                t_ref += time.perf_counter() - t1
                 obs = observe_planes(p, n, cams, planes.to(p), mask.to(p.device), tau, cfg.max_angle_deg,
                                      cfg.min_cos)
             sums.add(obs, cfg.consistency_px, cfg.consistency_noise * float(noise))
         est = sums.estimate(cfg.min_views)
         move = (est["consistency"] * est["offset"]).float()
         p = p + move[:, None] * n
+        filled = torch.zeros(len(p), dtype=torch.bool, device=p.device)
+        if cfg.fill_k > 0:
+            before = p
+            p, filled = fill_from_trusted(p, n, est["consistency"].float(), cfg.fill_k, cfg.fill_min_weight)
+            move = move + ((p - before) * n).sum(1)
         signs = n
         result_normals = n
         seen = est["count"] > 0
         s = {"pass": k, "observed": float(seen.double().mean()),
              "observed_min_views": float((est["count"] >= cfg.min_views).double().mean()),
-             "consistency_mean": float(est["consistency"].mean()),
+             "consistency_mean": float(est["consistency"].mean()), "filled": float(filled.float().mean()),
              "move_mean": float(move.abs().mean()), "move_max": float(move.abs().max()),
              "spread_median": float(est["spread"][seen].median()) if bool(seen.any()) else float("nan"),
-             "tau": tau, "seconds": time.perf_counter() - t0}
+             "tau": tau, "seconds": time.perf_counter() - t0, "reference_seconds": t_ref}
         stats.append(s)
         log.info("plane fusion pass %d: %.0f%% of points observed, consistency %.2f, mean move %.2g (max %.2g)",
                  k, 100 * s["observed"], s["consistency_mean"], s["move_mean"], s["move_max"])

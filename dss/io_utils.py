@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import tempfile
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "atomic_write_bytes",
@@ -31,11 +34,14 @@ class atomic_path:
             o3d.io.write_point_cloud(str(tmp), pcd)
 
     The temp name keeps the final suffix, so writers that pick a format from it still work.
-    On an exception the temp file is removed and the target is left untouched.
+    On an exception the temp file is removed and the target is left untouched. With
+    ``exclusive`` an existing target is never replaced: the result goes to the first free
+    ``<stem>-<n><suffix>`` instead, and ``.path`` names where it went.
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, exclusive: bool = False):
         self.path = Path(path)
+        self.exclusive = exclusive
 
     def __enter__(self) -> Path:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -52,11 +58,32 @@ class atomic_path:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None and self.tmp.exists() and self.tmp.stat().st_size > 0:
-            os.replace(self.tmp, self.path)
+            if self.exclusive:
+                self.path = _link_free(self.tmp, self.path)
+                self.tmp.unlink()
+            else:
+                os.replace(self.tmp, self.path)
         else:
             self.tmp.unlink(missing_ok=True)
             if exc_type is None:
                 raise OSError(f"{self.path}: the writer produced no data")
+
+
+def _link_free(tmp: Path, path: Path) -> Path:
+    """Hard-link ``tmp`` to ``path``, or (when something else created ``path`` meanwhile) to the
+    first free ``<stem>-<n><suffix>`` beside it: a link never replaces an existing file, so
+    neither result is lost. Returns the name used."""
+    n = 0
+    while True:
+        target = path if n == 0 else path.with_name(f"{path.stem}-{n}{path.suffix}")
+        try:
+            os.link(tmp, target)
+        except FileExistsError:
+            n += 1
+            continue
+        if n:
+            log.warning("%s appeared while this run was writing it; this run's result is %s", path, target)
+        return target
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:

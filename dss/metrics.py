@@ -51,6 +51,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -157,13 +158,38 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
 
     path = _check_file(path, _POINT_EXTS, "point cloud")
     ext = os.path.splitext(path)[1].lower()
+    if ext == ".ply":
+        from .pointcloud import PointCloudError, _ply_arrays
+
+        try:  # checked against the header: a truncated file is refused, nan/inf tokens are read
+            arrays = _ply_arrays(Path(path))
+        except PointCloudError as e:
+            raise ValueError(str(e)) from None
+        if arrays is not None:
+            return as_points(arrays[0].astype(np.float64), path)
     if ext in (".obj", ".off", ".stl"):
         pts = np.asarray(o3d.io.read_triangle_mesh(path).vertices)
     else:
         pts = np.asarray(o3d.io.read_point_cloud(path, remove_nan_points=False).points)
+        _check_ply_count(path, len(pts))
     if pts.size == 0:
         raise ValueError(f"{path}: no points could be read (empty or not a valid {ext} file)")
     return as_points(pts, path)
+
+
+def _check_ply_count(path: str, n_read: int) -> None:
+    """Refuse a PLY file whose reader returned fewer vertices than its header declares."""
+    if not str(path).lower().endswith(".ply"):
+        return
+    from .pointcloud import PointCloudError, read_ply_header
+
+    try:
+        vertex = read_ply_header(path).element("vertex")
+    except PointCloudError as e:
+        raise ValueError(str(e)) from None
+    if vertex is not None and vertex.count != n_read:
+        raise ValueError(f"{path}: the header declares {vertex.count} vertices, {n_read} could be read "
+                         "(truncated or malformed file)")
 
 
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -173,6 +199,7 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     path = _check_file(path, _MESH_EXTS, "mesh")
     m = o3d.io.read_triangle_mesh(path)
     v, f = np.asarray(m.vertices), np.asarray(m.triangles)
+    _check_ply_count(path, len(v))
     if v.size == 0:
         raise ValueError(f"{path}: no vertices could be read (empty or not a valid mesh file)")
     if f.size == 0:

@@ -44,8 +44,13 @@ of every cycle. Both are additions to the paper's schedule, measured on sphere -
 them the points approach the target but the normals stop matching the geometry and the renders
 degrade after about five cycles. Local editing and denoising keep the defaults (off).
 
-Divergence guard: a step that makes the loss or any parameter non-finite is undone, the
-learning rates are halved, and a warning says so (``history["lr_halvings"]``).
+Divergence guard: a step that makes the loss or any parameter non-finite, or a finite
+blow-up (the cloud's bounding-box diagonal beyond ``blowup_extent`` x its start, or the start's
+camera sphere, whichever is larger; optionally the image loss beyond ``blowup_loss`` x the first
+loss of its cycle, whose cameras and references it shares) is undone (the step; for the loss, the
+cycle so far), the learning rates are halved, and a warning says so (``history["lr_halvings"]``,
+``history["rejected"]``). After ``max_lr_halvings`` halvings the run cannot recover:
+:class:`OptimizationDiverged` is raised, and no result exists to be written.
 """
 
 from __future__ import annotations
@@ -73,11 +78,17 @@ from .regularizers import (
 from .render import RenderOutput, RenderSettings, render
 from .shading import shade
 from .splats import auto_sigma
+from .timing import StageClock
 from .views import SphereViewSampler, error_aware_cameras
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OptimizerConfig", "MultiViewOptimizer", "OptimizationResult", "occlusion_counts", "window_for_cycle"]
+__all__ = ["OptimizerConfig", "MultiViewOptimizer", "OptimizationResult", "OptimizationDiverged", "occlusion_counts",
+           "window_for_cycle"]
+
+
+class OptimizationDiverged(RuntimeError):
+    """The optimisation blew up and halving the learning rates did not recover it."""
 
 Reference = Callable[[Cameras], torch.Tensor]
 
@@ -163,6 +174,19 @@ class OptimizerConfig:
     grad_smoothing: int = 0  # passes of neighbour averaging of the image gradient on the points
     normal_refresh: str = "none"  # "none" | "pca": re-fit normals to the points at each cycle start
     normal_refresh_k: int = 16
+    # divergence guard (module docstring): a step that grows the cloud's extent beyond
+    # blowup_extent x its start's, or the image loss beyond blowup_loss x its cycle's first, is
+    # undone and the rates halved; 0 turns a test off. After max_lr_halvings: OptimizationDiverged.
+    # The loss test is off by default: denoising starts each cycle from renders of the input,
+    # whose loss against references made from the input is small, and a healthy run's loss then
+    # grows many-fold as the points leave the noise (with 10x, tests/test_denoise.py's tiny-model
+    # case had its cycles undone: Chamfer x1e4 3.61 -> 3.56 where it reaches below 2.9). A
+    # blown-up cloud trips the extent test. 3x: dss-deform with lr_points 1e6 (300 points, 32
+    # px) ended at Chamfer x1e4 7.2e4 with 10x (points flung 4 diagonals away, under 10x), 538
+    # with 3x; its default rate tripped neither.
+    blowup_extent: float = 3.0
+    blowup_loss: float = 0.0
+    max_lr_halvings: int = 16
     seed: int = 0
 
     def __post_init__(self):
@@ -195,8 +219,32 @@ class OptimizerConfig:
             raise ValueError("final_projection_k, _threshold and _local_ratio must be >= 0, got "
                              f"{self.final_projection_k}, {self.final_projection_threshold}, "
                              f"{self.final_projection_local_ratio}")
+        if self.blowup_extent < 0 or self.blowup_loss < 0 or self.max_lr_halvings < 0:
+            raise ValueError("blowup_extent, blowup_loss and max_lr_halvings must be >= 0, got "
+                             f"{self.blowup_extent}, {self.blowup_loss}, {self.max_lr_halvings}")
         if self.final_projection_iterations < 1:
             raise ValueError(f"final_projection_iterations must be >= 1, got {self.final_projection_iterations}")
+
+
+    def min_points(self) -> int:
+        """The fewest points this configuration can optimise: more than the largest neighbour
+        list it asks for (regularisers: reg_k x reg_dilation; final projection:
+        final_projection_k x reg_dilation; normal refresh: normal_refresh_k)."""
+        need = 3
+        if self.projection_weight > 0 or self.repulsion_weight > 0:
+            need = max(need, self.reg_k * self.reg_dilation + 1)
+        if self.final_projection_k > 0:
+            need = max(need, self.final_projection_k * self.reg_dilation + 1)
+        if self.normal_refresh != "none":
+            need = max(need, self.normal_refresh_k + 1)
+        return need
+
+    def check_points(self, n: int, what: str = "the cloud") -> None:
+        """Refuse ``n`` points before any work when they are too few (:meth:`min_points`)."""
+        if n < self.min_points():
+            raise ValueError(f"{what} has {n} points, too few for this optimisation (at least {self.min_points()}: "
+                             f"reg_k {self.reg_k} x reg_dilation {self.reg_dilation}, final_projection_k "
+                             f"{self.final_projection_k}, normal_refresh_k {self.normal_refresh_k})")
 
 
 @dataclass
@@ -251,6 +299,7 @@ class MultiViewOptimizer:
                  callback: Callable[[int, dict], None] | None = None, sampler: SphereViewSampler | None = None,
                  image_size: int = 256):
         self.cfg = config or OptimizerConfig()
+        self.cfg.check_points(points.shape[0])
         self.settings = settings or RenderSettings()
         self.points = points.detach().clone().float().requires_grad_(True)
         self.normals = torch.nn.functional.normalize(normals.detach().clone().float(), dim=1).requires_grad_(True)
@@ -270,6 +319,8 @@ class MultiViewOptimizer:
                                    min_neighbors=self.cfg.reg_min_neighbors)
         self.rep = RepulsionLoss(_bandwidth(self.cfg.repulsion_bandwidth, p), k=self.cfg.reg_k,
                                  cutoff=self.cfg.reg_cutoff, min_neighbors=self.cfg.reg_min_neighbors)
+        # the divergence guard's yardstick: the start cloud or the cameras' sphere, the larger
+        self._extent0 = max(float((p.max(0).values - p.min(0).values).norm()), 2 * float(radius), 1e-12)
         self.proj.set_initial_shape(p)
         self.rep.set_initial_shape(p)
         self.lr_scale = 1.0
@@ -283,7 +334,9 @@ class MultiViewOptimizer:
         self._ref_coverage: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None = None
         self._cycle_decay = 1.0  # lr_decay ** cycle
         self.history: dict = {"step": [], "loss": [], "image_loss": [], "time": [], "kind": [], "lr_halvings": 0,
-                              "config": asdict(self.cfg)}
+                              "rejected": [], "config": asdict(self.cfg)}
+        # host-side wall time per part of the loop (history["profile_s"])
+        self.clock = StageClock()
         self._make_optimizers()
 
     # ------------------------------------------------------------------ internals
@@ -378,8 +431,9 @@ class MultiViewOptimizer:
         saved = (self.points.detach().clone(), self.normals.detach().clone())
         pts = self.points if (image_moves_points or need_img_scale) else self.points.detach()
         sil = self.cfg.silhouette_weight > 0
-        out = render(pts, self.normals if move_normals else self.normals.detach(), cams, settings,
-                     shading=self._with_coverage if sil else self.shading, backend=self.backend, sigma=self._sigma)
+        with self.clock("render"):
+            out = render(pts, self.normals if move_normals else self.normals.detach(), cams, settings,
+                         shading=self._with_coverage if sil else self.shading, backend=self.backend, sigma=self._sigma)
         if sil:
             img_loss = self._image_loss(out.images[..., :-1], target)
             cover = self._coverage(target).to(out.images.dtype)
@@ -390,7 +444,8 @@ class MultiViewOptimizer:
             self._diverged("the image loss is not finite", saved)
             return float("nan"), float("nan")
         if img_loss.requires_grad:
-            img_loss.backward()
+            with self.clock("backward"):
+                img_loss.backward()
         g_img = self.points.grad
         if g_img is not None:
             # Pixels covered only by near edge-on splats have a tiny total weight, and the
@@ -408,8 +463,9 @@ class MultiViewOptimizer:
                 g_img = None
             elif self.cfg.grad_smoothing > 0:
                 g_img = self._smooth(g_img, self.cfg.grad_smoothing)
-        occl = occlusion_counts(out).detach()
-        g_reg = self._regularizer_grads(occl)
+        with self.clock("regularizers"):
+            occl = occlusion_counts(out).detach()
+            g_reg = self._regularizer_grads(occl)
         # Points move in every step: by image + regulariser gradients in point steps, by the
         # regulariser alone in normal steps (paper "Alternating normal and point update").
         g = g_img if g_reg is None else (g_reg if g_img is None else g_img + g_reg)
@@ -439,14 +495,28 @@ class MultiViewOptimizer:
         if not all_finite(self.points, self.normals):
             self._diverged("a step produced NaN/inf parameters", saved)
             return float("nan"), float("nan")
+        if self.cfg.blowup_extent > 0:
+            p = self.points.detach()
+            extent = float((p.max(0).values - p.min(0).values).norm())
+            if extent > self.cfg.blowup_extent * self._extent0:
+                self._diverged(f"a step grew the cloud to {extent / self._extent0:.3g}x its start's extent", saved)
+                return float("nan"), float("nan")
         return float(img_loss.detach()), float(img_loss.detach())
 
     def _diverged(self, why: str, saved):
+        """Undo to ``saved`` (points, normals), halve the learning rates, reset their momentum;
+        raises :class:`OptimizationDiverged` once ``max_lr_halvings`` did not help."""
         with torch.no_grad():
             self.points.copy_(saved[0])
             self.normals.copy_(saved[1])
+        h = self.history
+        h["rejected"].append({"step": len(h["step"]) + 1, "why": why})
+        if h["lr_halvings"] >= self.cfg.max_lr_halvings:
+            raise OptimizationDiverged(
+                f"the optimisation diverged and did not recover: {why}, after {h['lr_halvings']} halvings of the "
+                f"learning rates (x{self.lr_scale:.3g} of the configured ones); lower the learning rates")
         self.lr_scale *= 0.5
-        self.history["lr_halvings"] += 1
+        h["lr_halvings"] += 1
         log.warning("%s: step rejected, learning rates halved (x%.3g of the configured ones)", why, self.lr_scale)
         self._make_optimizers()
 
@@ -532,6 +602,13 @@ class MultiViewOptimizer:
                 self.points.copy_(self.project_outliers(self.points.detach()))
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
+        # the rest of each step: loss, optimiser updates, clipping, the divergence guard, callbacks
+        self.history["profile_s"] = {**self.clock.seconds,
+                                     "other": max(0.0, self.history["wall_time"] - sum(self.clock.seconds.values()))}
+        if self.history["lr_halvings"]:
+            log.warning("the optimisation was unstable: %d steps rejected, learning rates halved %d times "
+                        "(x%.3g of the configured ones); lower them", len(self.history["rejected"]),
+                        self.history["lr_halvings"], self.lr_scale)
         return OptimizationResult(self.points.detach().clone(), self.normals.detach().clone(), self.history)
 
     def _run_cycles(self, progress, gen: torch.Generator, t0: float) -> int:
@@ -545,10 +622,11 @@ class MultiViewOptimizer:
                     cams = self._error_aware(cams, gen)
                 else:  # on the points' device: the renders and the reference see one device
                     cams = self.sampler.sample().to(self.points.device)
-            with torch.no_grad():
+            with torch.no_grad(), self.clock("references"):
                 target = self.reference(cams).detach()
             self._cycle_decay = c.lr_decay ** cycle
-            self._refresh_neighbourhoods()
+            with self.clock("neighbourhoods"):
+                self._refresh_neighbourhoods()
             if cycle > 0 and c.lr_decay != 1.0:
                 for opt in (self.opt_p, self.opt_n):
                     for group in opt.param_groups:
@@ -557,8 +635,19 @@ class MultiViewOptimizer:
                             group["scheduled_lr"] *= c.lr_decay
             window, stride = window_for_cycle(c, cycle)
             prev_point_loss = None
+            # the loss guard's reference: the cycle's first loss and state (same cameras and
+            # references for every step of the cycle, so their losses compare)
+            first_loss = None
+            start = (self.points.detach().clone(), self.normals.detach().clone()) if c.blowup_loss > 0 else None
             for kind in self._cycle_plan():
                 loss, img_loss = self._step(kind, cams, target, window, stride)
+                if start is not None and math.isfinite(img_loss):
+                    if first_loss is None:
+                        first_loss = img_loss
+                    elif first_loss > 0 and img_loss > c.blowup_loss * first_loss:
+                        self._diverged(f"the image loss rose to {img_loss / first_loss:.3g}x its cycle's first",
+                                       start)
+                        loss = img_loss = float("nan")
                 if c.bold_driver and kind in ("points", "joint") and math.isfinite(img_loss):
                     # the loss of step t is measured before its update: it judges step t-1's
                     # update (same cameras and references within a cycle)

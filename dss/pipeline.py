@@ -29,6 +29,7 @@ from .optimize import MultiViewOptimizer, OptimizationResult, OptimizerConfig
 from .pointcloud import all_finite
 from .render import RenderSettings, render
 from .splats import auto_sigma
+from .timing import StageClock
 
 log = logging.getLogger(__name__)
 
@@ -168,9 +169,9 @@ def refine_with_reference(
         device: where the optimisation runs (e.g. ``"cuda"``: renders, regularisers and kNN on
             the GPU); None: the points' device. ``image_fn`` gets images on that device. The
             results and the renderer's ``last`` come back on the points' device.
-        fusion: after the cycles, :func:`dss.fusion.fuse_planes` with these settings moves the
-            points onto the surface the references show (needs ``shading="planes"``), before
-            the configured final projection of outliers. None: no fusion (the paper).
+        fusion: after the cycles and the configured final projection of outliers,
+            :func:`dss.fusion.fuse_planes` with these settings moves the points onto the
+            surface the references show (needs ``shading="planes"``). None: no fusion (the paper).
         fusion_cameras: ``() -> Cameras`` with ``fusion.views`` fresh views per call (required
             with ``fusion``).
         noise: the cloud's noise level (std in bbox diagonals; the fusion's depth window).
@@ -203,28 +204,36 @@ def refine_with_reference(
     log.info("refining %d points: %d cycles x (%d normal + %d point steps), %d views per step",
              len(points), config.cycles, config.normal_steps, config.point_steps, config.views)
     result = opt.run(progress=progress, final_projection=False)
+    clock = StageClock()  # the stages after the cycles (history["profile_s"])
+    with clock("outlier_projection"):
+        result.points = opt.project_outliers(result.points)
     if fusion is not None:
+        # after the outlier projection: the outliers it moved are then within the fusion's
+        # depth window, and the fusion has the last word on every point it can see
         def plane_reference(cams: Cameras):
             planes = ref(cams)
             return planes, planes.abs().amax(-1) > 0  # the background plane is 0
 
-        fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
-                            fusion, float(noise), callback=fusion_callback)
-        result.points, result.normals = fused.points, fused.normals
-        result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
-                                    "consistency_mean": float(fused.consistency.mean()),
-                                    "image_normals": float(fused.image_normal_mask.float().mean())}
-    projected = opt.project_outliers(result.points)
-    if fusion is not None:  # an outlier moved by the final projection takes the PCA normal there
-        moved = (projected - result.points).norm(dim=1) > 0
-        if bool(moved.any()):
+        with clock("fusion"):
+            fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
+                                fusion, float(noise), callback=fusion_callback)
+        # and once more after it: on the fused (cleaner) surface the outlier test is tighter
+        with clock("outlier_projection"):
+            projected = opt.project_outliers(fused.points)
+        moved = (projected - fused.points).norm(dim=1) > 0
+        normals = fused.normals
+        if bool(moved.any()):  # a moved outlier takes the PCA normal at its new place
             from .pointcloud import estimate_normals
 
             pca = estimate_normals(projected, k=fusion.normal_k, orient="none").to(projected)
-            pca = torch.where((pca * result.normals).sum(1, keepdim=True) < 0, -pca, pca)
-            result.normals = torch.where(moved[:, None], pca, result.normals)
-        result.history["fusion"]["final_projection_moved"] = int(moved.sum())
-    result.points = projected
+            pca = torch.where((pca * normals).sum(1, keepdim=True) < 0, -pca, pca)
+            normals = torch.where(moved[:, None], pca, normals)
+        result.points, result.normals = projected, normals
+        result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
+                                    "consistency_mean": float(fused.consistency.mean()),
+                                    "image_normals": float(fused.image_normal_mask.float().mean()),
+                                    "final_projection_moved": int(moved.sum())}
+    result.history["profile_s"] = {**result.history.get("profile_s", {}), **clock.seconds}
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
     result.history["device"] = str(dev)
@@ -259,6 +268,11 @@ def local_quadric_residual(points, k: int, queries: int = 2000, seed: int = 0) -
     k = int(min(k, n))
     if k < 10:
         raise ValueError(f"need at least 10 points for a local quadric fit, got {n}")
+    # fitted in units of the bounding-box diagonal, so that the fit's small ridge term means the
+    # same at any scale of the input (a cloud in km or in um); the residual comes back in input units
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    diag = diag if diag > 0 else 1.0
+    p = (p - p.min(0)) / diag
     rng = np.random.default_rng(seed)
     q = rng.choice(n, min(queries, n), replace=False)
     _, idx = cKDTree(p).query(p[q], k=k)
@@ -272,7 +286,7 @@ def local_quadric_residual(points, k: int, queries: int = 2000, seed: int = 0) -
     AtA = np.einsum("qki,qkj->qij", A, A) + 1e-12 * np.eye(6)
     coef = np.linalg.solve(AtA, np.einsum("qki,qk->qi", A, h)[..., None])[..., 0]
     r = h - np.einsum("qki,qi->qk", A, coef)
-    return np.sqrt((r**2).sum(1) / (k - 6))
+    return np.sqrt((r**2).sum(1) / (k - 6)) * diag
 
 
 def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24, k_max: int = 256,
@@ -300,10 +314,12 @@ def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24
         raise ValueError(f"points must be (N, 3), got {p.shape}")
     p = p[np.isfinite(p).all(1)]
     diag = float(np.linalg.norm(p.max(0) - p.min(0))) if len(p) else 0.0
-    if diag <= 0:
+    if not diag > 0:
         raise ValueError("cannot estimate noise of an empty or zero-size point set")
+    # in units of the bounding-box diagonal: the result is a fraction of it at any input scale
+    p = (p - (p.max(0) + p.min(0)) / 2) / diag
     k = int(np.clip(round(patch_fraction * len(p)), k_min, k_max))
-    m = float(np.median(local_quadric_residual(p, k, queries, seed))) / diag
+    m = float(np.median(local_quadric_residual(p, k, queries, seed)))
     xs, ys = zip(*NOISE_CALIBRATION)
     if m <= xs[-1]:
         return float(np.interp(m, xs, ys))

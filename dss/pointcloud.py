@@ -31,6 +31,8 @@ __all__ = [
     "all_finite",
     "finite_rows",
     "find_outliers",
+    "read_ply_header",
+    "read_ply_vertices",
 ]
 
 
@@ -113,6 +115,172 @@ def finite_rows(*arrays: torch.Tensor | None) -> torch.Tensor:
     return mask
 
 
+# ------------------------------------------------------------------------------ PLY reading
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+@dataclass
+class PlyElement:
+    """One ``element`` of a PLY header: its name, count and properties ``(name, type)``; a list
+    property's type is ``("list", count type, item type)``."""
+
+    name: str
+    count: int
+    properties: list
+
+
+@dataclass
+class PlyHeader:
+    """A parsed PLY header: ``format`` (``ascii`` | ``binary_little_endian`` |
+    ``binary_big_endian``), the elements in file order, and the header's length in bytes."""
+
+    format: str
+    elements: list
+    size: int
+
+    def element(self, name: str) -> PlyElement | None:
+        return next((e for e in self.elements if e.name == name), None)
+
+
+def read_ply_header(path: str | os.PathLike) -> PlyHeader:
+    """Parse a PLY header; raises PointCloudError naming the file and what is wrong."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        first = f.readline()
+        if first.strip() != b"ply":
+            raise PointCloudError(f"{path}: not a PLY file (header does not start with 'ply')")
+        fmt, elements = None, []
+        while True:
+            raw = f.readline()
+            if not raw:
+                raise PointCloudError(f"{path}: the PLY header has no 'end_header' line (truncated file?)")
+            line = raw.decode("ascii", errors="replace").strip()
+            words = line.split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "format" and len(words) >= 2:
+                fmt = words[1]
+            elif words[0] == "element" and len(words) == 3 and words[2].lstrip("-").isdigit():
+                if int(words[2]) < 0:
+                    raise PointCloudError(f"{path}: the PLY header gives a negative count: {line!r}")
+                elements.append(PlyElement(words[1], int(words[2]), []))
+            elif words[0] == "property" and elements and len(words) == 3 and words[1] in _PLY_TYPES:
+                elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
+            elif (words[0] == "property" and elements and len(words) == 5 and words[1] == "list"
+                  and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES):
+                elements[-1].properties.append((words[4], ("list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]])))
+            else:
+                raise PointCloudError(f"{path}: unreadable PLY header line {line!r}")
+        size = f.tell()
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise PointCloudError(f"{path}: unknown PLY format {fmt!r}")
+    return PlyHeader(fmt, elements, size)
+
+
+def _fixed_dtype(element: PlyElement, endian: str) -> np.dtype | None:
+    """The numpy record type of a binary element with scalar properties only, else None."""
+    if any(isinstance(t, tuple) for _, t in element.properties):
+        return None
+    return np.dtype([(n, endian + t) for n, t in element.properties])
+
+
+def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray] | None:
+    """The vertex element of a PLY file as ``{property: (N,) array}``, checked against the header.
+
+    A binary body shorter than the header's vertex count, or an ASCII body with fewer rows
+    (or rows with the wrong number of values) is refused by name: readers that stop at the
+    first bad row fill the rest with zeros, and those zeros look like points at the origin.
+    ASCII tokens ``nan``, ``inf`` and ``-inf`` are read as such (the caller's ``nan_policy``
+    decides about them). Returns None for a layout this reader does not cover (a list property
+    in the vertices, or a list element before them in a binary file); open3d reads those.
+    """
+    path = Path(path)
+    header = read_ply_header(path)
+    vertex = header.element("vertex")
+    if vertex is None:
+        raise PointCloudError(f"{path}: the PLY header has no 'vertex' element")
+    if any(isinstance(t, tuple) for _, t in vertex.properties):
+        return None
+    names = [n for n, _ in vertex.properties]
+    if header.format == "ascii":
+        with open(path, "rb") as f:
+            f.seek(header.size)
+            lines = f.read().decode("ascii", errors="replace").splitlines()
+        lines = [ln for ln in lines if ln.strip()]
+        skip = 0
+        for e in header.elements:
+            if e is vertex:
+                break
+            skip += e.count
+        rows = lines[skip:skip + vertex.count]
+        if len(rows) < vertex.count:
+            raise PointCloudError(f"{path}: truncated: the header declares {vertex.count} vertices, "
+                                  f"the file holds {max(0, len(rows))} rows")
+        values = np.empty((vertex.count, len(names)), np.float64)
+        for i, row in enumerate(rows):
+            tokens = row.split()
+            if len(tokens) != len(names):
+                raise PointCloudError(f"{path}: vertex row {i} has {len(tokens)} values, the header "
+                                      f"declares {len(names)} ({' '.join(names)})")
+            try:
+                values[i] = [float(t) for t in tokens]  # float() reads nan, inf, -inf too
+            except ValueError:
+                raise PointCloudError(f"{path}: vertex row {i} holds a value that is not a number: "
+                                      f"{row.strip()[:80]!r}") from None
+        return {n: values[:, j] for j, n in enumerate(names)}
+    endian = "<" if header.format == "binary_little_endian" else ">"
+    offset = header.size
+    for e in header.elements:
+        if e is vertex:
+            break
+        dt = _fixed_dtype(e, endian)
+        if dt is None:
+            return None
+        offset += e.count * dt.itemsize
+    dt = _fixed_dtype(vertex, endian)
+    available = max(0, path.stat().st_size - offset)
+    complete = available // dt.itemsize if dt.itemsize else 0
+    if complete < vertex.count:
+        raise PointCloudError(f"{path}: truncated: the header declares {vertex.count} vertices, "
+                              f"the file holds {complete} complete rows ({path.stat().st_size} bytes)")
+    data = np.fromfile(path, dtype=dt, count=vertex.count, offset=offset)
+    return {n: data[n] for n in names}
+
+
+def _columns(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray | None:
+    if not all(n in cols for n in names):
+        return None
+    return np.stack([np.asarray(cols[n], np.float64) for n in names], 1)
+
+
+def _ply_arrays(path: Path):
+    """(points, normals or None, colours or None) as float32 arrays from :func:`read_ply_vertices`,
+    or None when that reader does not cover the file's layout."""
+    cols = read_ply_vertices(path)
+    if cols is None:
+        return None
+    points = _columns(cols, ("x", "y", "z"))
+    if points is None:
+        raise PointCloudError(f"{path}: the PLY vertices have no x, y, z properties")
+    normals = _columns(cols, ("nx", "ny", "nz"))
+    colors = None
+    for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if all(n in cols for n in names):
+            kind = cols[names[0]].dtype
+            colors = _columns(cols, names)
+            if np.issubdtype(kind, np.integer):  # 0..255 (or 0..65535) -> [0, 1]
+                colors = colors / float(np.iinfo(kind).max)
+            break
+    with np.errstate(over="ignore", invalid="ignore"):  # out-of-range doubles become inf: reported
+        return tuple(None if a is None else a.astype(np.float32) for a in (points, normals, colors))
+
+
 def load_ply(
     path: str | os.PathLike,
     nan_policy: str = "drop",
@@ -123,13 +291,15 @@ def load_ply(
 
     Args:
         path: the file.
-        nan_policy: rows with NaN/inf in points or normals are reported (logged with their count)
-            and then ``"drop"``-ped, or the load is refused with ``"raise"``.
+        nan_policy: rows with NaN/inf in points or normals (ASCII ``nan``/``inf`` tokens
+            included) are reported (logged with their count) and then ``"drop"``-ped, or the
+            load is refused with ``"raise"``.
         compute_normals: when the file has no normals, estimate them by PCA over ``normals_k``
             neighbours and orient them consistently (see :func:`estimate_normals`).
 
     Raises:
-        PointCloudError: missing file, unreadable/malformed file, empty cloud, NaN rows with
+        PointCloudError: missing file, unreadable/malformed file, a PLY body with fewer
+            vertices than its header declares (truncated), empty cloud, NaN rows with
             ``nan_policy="raise"``, or no finite row left.
     """
     import open3d as o3d
@@ -143,16 +313,21 @@ def load_ply(
         raise PointCloudError(f"{path}: is a directory, expected a point cloud file")
     if path.stat().st_size == 0:
         raise PointCloudError(f"{path}: the file is empty")
-    pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
-    if len(pcd.points) == 0:
-        with open(path, "rb") as f:
-            head = f.read(64)
-        if path.suffix.lower() == ".ply" and not head.startswith(b"ply"):
-            raise PointCloudError(f"{path}: not a PLY file (header does not start with 'ply')")
+    arrays = _ply_arrays(path) if path.suffix.lower() == ".ply" else None
+    if arrays is None:  # another format, or a PLY layout our reader leaves to open3d
+        pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+        if path.suffix.lower() == ".ply":
+            declared = read_ply_header(path).element("vertex").count
+            if len(pcd.points) != declared:
+                raise PointCloudError(f"{path}: the header declares {declared} vertices, "
+                                      f"{len(pcd.points)} could be read (truncated or malformed file)")
+        with np.errstate(over="ignore", invalid="ignore"):
+            arrays = (np.asarray(pcd.points, dtype=np.float32),
+                      np.asarray(pcd.normals, dtype=np.float32) if pcd.has_normals() else None,
+                      np.asarray(pcd.colors, dtype=np.float32) if pcd.has_colors() else None)
+    if len(arrays[0]) == 0:
         raise PointCloudError(f"{path}: holds no points (empty cloud, or a malformed file open3d could not parse)")
-    points = torch.from_numpy(np.asarray(pcd.points, dtype=np.float32).copy())
-    normals = torch.from_numpy(np.asarray(pcd.normals, dtype=np.float32).copy()) if pcd.has_normals() else None
-    colors = torch.from_numpy(np.asarray(pcd.colors, dtype=np.float32).copy()) if pcd.has_colors() else None
+    points, normals, colors = (None if a is None else torch.from_numpy(np.array(a, np.float32)) for a in arrays)
 
     ok = finite_rows(points, normals, colors)
     n_bad = int((~ok).sum())
@@ -180,8 +355,9 @@ def load_ply(
     return PointCloud(points, normals, colors)
 
 
-def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False) -> Path:
-    """Write ``cloud`` (points, normals and colours when present) atomically as PLY."""
+def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False, exclusive: bool = False) -> Path:
+    """Write ``cloud`` (points, normals and colours when present) atomically as PLY; returns the
+    path written. ``exclusive``: never replace an existing file (see :class:`dss.io_utils.atomic_path`)."""
     import open3d as o3d
 
     if len(cloud) == 0:
@@ -192,11 +368,11 @@ def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False) ->
         pcd.normals = o3d.utility.Vector3dVector(cloud.normals.detach().cpu().double().numpy())
     if cloud.colors is not None:
         pcd.colors = o3d.utility.Vector3dVector(cloud.colors.detach().cpu().double().clamp(0, 1).numpy())
-    path = Path(path)
-    with atomic_path(path) as tmp:
+    writer = atomic_path(Path(path), exclusive=exclusive)
+    with writer as tmp:
         if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=ascii):
             raise OSError(f"{path}: open3d could not write the file")
-    return path
+    return writer.path
 
 
 def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.Tensor:
@@ -220,7 +396,11 @@ def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.T
     if len(p) < 3:
         raise PointCloudError(f"cannot estimate normals of {len(p)} points (need at least 3)")
     k = int(min(k, len(p)))
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    # fitted in units of the bounding-box diagonal: open3d's neighbourhood and orientation
+    # tolerances are absolute, and the normals do not depend on the scale
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    unit = (p - p.mean(0)) / (diag if diag > 0 else 1.0)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(unit))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
     if orient == "consistent" and len(p) > k + 1:
         try:

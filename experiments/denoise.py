@@ -37,11 +37,19 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from dss.timing import StageClock
 from experiments.common import (
+    OutputExistsError,
+    claim_output,
+    claim_run_dir,
     describe_device,
+    guarded,
     optimization_report,
     positional_to_override,
+    prepare_kernels,
+    release_claims,
     resolve_device,
+    run_app,
     run_dir,
     save_config,
     save_metrics,
@@ -51,33 +59,38 @@ from experiments.wandb_log import log_run
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run", "main", "EXAMPLE_DIR", "OutputExistsError", "load_input", "resolve_output"]
+__all__ = ["run", "main", "EXAMPLE_DIR", "ARTEFACTS", "OutputExistsError", "load_input", "resolve_output"]
 
 EXAMPLE_DIR = Path(__file__).resolve().parent / "assets" / "example"
 EXAMPLE_FILES = {"input": "noisy_1pct.ply", "clean": "clean.ply", "mesh": "mesh.ply"}
 
 
-class OutputExistsError(FileExistsError):
-    """The output path exists and ``overwrite`` is false."""
+#: what a run writes into its run directory (an earlier run's are refused or, with overwrite,
+#: removed first: experiments.common.claim_run_dir)
+ARTEFACTS = ("denoised.ply", "outliers.ply", "before_after.png", "references.png", "loss.png", "loss.json",
+             "metrics.json", "config.yaml")
 
 
 # ------------------------------------------------------------------------------ input / output
 def resolve_output(cfg: DictConfig, out: Path, default_name: str) -> Path:
-    """The output PLY path; refuses an existing file unless ``cfg.overwrite``."""
+    """The output PLY path, claimed for this run (experiments.common.claim_output): its folder
+    must be writable, no other running process may hold it, and an existing file is refused
+    unless ``cfg.overwrite``."""
     path = Path(cfg.output) if cfg.get("output") else out / default_name
     if path.suffix.lower() != ".ply":
         raise ValueError(f"output {path}: must be a .ply file")
-    if path.exists() and not cfg.get("overwrite", False):
-        raise OutputExistsError(f"output {path} already exists; refusing to replace it (pass overwrite=true)")
-    if path.is_dir():
-        raise IsADirectoryError(f"output {path} is a directory")
-    return path
+    return claim_output(path, bool(cfg.get("overwrite", False)))
 
 
 def _raw_row_count(path: Path) -> int | None:
-    import open3d as o3d
+    """The rows the file declares (a PLY header's vertex count; open3d's count otherwise)."""
+    from dss.pointcloud import read_ply_header
 
     try:
+        if path.suffix.lower() == ".ply":
+            return read_ply_header(path).element("vertex").count
+        import open3d as o3d
+
         return len(o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False).points)
     except Exception:  # load_ply reports the real problem
         return None
@@ -120,41 +133,41 @@ def outlier_params(node) -> dict:
     return {k: node[k] for k in OUTLIER_KEYS if node.get(k) is not None}
 
 
-def remove_outliers(cloud, node, out: Path, normals_k: int | None = None) -> tuple[Any, dict]:
-    """(inlier cloud, report): ``node`` is conf/denoise.yaml's ``outliers`` block. The removed
-    points are written to ``out/outliers.ply`` (nothing the user gave is lost) and counted.
+def remove_outliers(cloud, node, normals_k: int | None = None) -> tuple[Any, dict, Any]:
+    """(inlier cloud, report, removed cloud or None): ``node`` is conf/denoise.yaml's ``outliers``
+    block. The caller writes the removed points to ``outliers.ply`` with the run's results
+    (nothing the user gave is lost, and nothing is written before the run can succeed).
     ``normals_k``: the normals were estimated (not read), so re-estimate them without the outliers."""
-    from dss.pointcloud import (
-        PointCloud,
-        PointCloudError,
-        estimate_normals,
-        find_outliers,
-        save_ply,
-    )
+    from dss.pointcloud import PointCloudError, estimate_normals, find_outliers
 
     params = outlier_params(node)
     if not node.get("remove", True):
-        return cloud, {"removed": 0, "enabled": False, **params}
+        return cloud, {"removed": 0, "enabled": False, **params}, None
     t0 = time.perf_counter()
     bad = find_outliers(cloud.points, **params)
     n_bad = int(bad.sum())
     report = {"enabled": True, "removed": n_bad, "fraction": n_bad / max(1, len(cloud)), **params,
               "seconds": time.perf_counter() - t0, "file": None}
     if n_bad == 0:
-        return cloud, report
+        return cloud, report, None
     kept = cloud.select(~bad)
     if len(kept) < 16:
         raise PointCloudError(f"outlier removal would leave {len(kept)} of {len(cloud)} points; "
                               "set outliers.remove=false")
-    report["file"] = str(save_ply(out / "outliers.ply", PointCloud(cloud.points[bad], cloud.normals[bad])))
     if normals_k:
         kept = kept.with_normals(estimate_normals(kept.points, k=normals_k))
     log.log(logging.WARNING if report["fraction"] > 0.1 else logging.INFO,
-            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; written to %s)%s",
-            n_bad, len(cloud), 100 * report["fraction"], report["file"],
+            "removed %d of %d points (%.2f%%) as outliers (sparser than the surface; kept in outliers.ply with the results)%s",
+            n_bad, len(cloud), 100 * report["fraction"],
             ": a scan of varying density loses its sparse parts, set outliers.remove=false to keep them"
             if report["fraction"] > 0.1 else "")
-    return kept, report
+    return kept, report, cloud.select(bad)
+
+
+def _explicit_model(cfg: DictConfig) -> bool:
+    """Whether the reference names its model file (checked before any work) rather than ``auto``."""
+    node = cfg.reference
+    return "model" in node and node.model not in (None, "auto")
 
 
 def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0):
@@ -442,11 +455,13 @@ def fusion_config(cfg: DictConfig, shading):
 
 def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor, generator, spec, desc: str,
                    shading=None, noise: float | None = None, clean: np.ndarray | None = None, mesh=None,
-                   fusion_callback=None):
+                   callback=None, fusion_callback=None):
     """Normalise, refine with ``generator`` under ``spec`` (cameras, renderer settings; shading:
     the spec's channel unless given), then the plane fusion (``cfg.fusion``), de-normalise.
     ``clean`` (M, 3), input units: the ground truth an oracle generator renders (with the
-    normals of ``mesh`` (vertices, faces), input units, when given).
+    normals of ``mesh`` (vertices, faces), input units, when given). ``callback`` and
+    ``fusion_callback``: the optimiser's and the fusion's per-step / per-pass hooks (in the
+    normalised frame; :mod:`experiments.image_study` records its numbers with them).
 
     Returns (points, normals in input units, history, reference renderer, normalisation
     (centre, scale, normalised input points), optimiser config)."""
@@ -485,10 +500,18 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
                                             shading=shading, sampler=sampler, backend=spec.backend, progress=update,
                                             device=dev, keep_background=getattr(generator, "keep_background", True),
                                             fusion=fcfg, fusion_cameras=fusion_cams, noise=noise,
-                                            fusion_callback=fusion_callback)
+                                            callback=callback, fusion_callback=fusion_callback)
     finally:
         bar.close()
     result.history["device"] = describe_device(dev)
+    # the optimiser undoes blow-ups as they happen; a result that is still far larger than the
+    # input (or not finite) is not one, and is never written out
+    from dss.optimize import OptimizationDiverged
+    from dss.pointcloud import all_finite, bbox_diagonal
+
+    if not all_finite(result.points, result.normals) or bbox_diagonal(result.points) > 2.0:
+        raise OptimizationDiverged(f"the optimisation diverged: the result is not finite or spans "
+                                   f"{bbox_diagonal(result.points):.3g}x the input's bounding box; lower the learning rates")
     out_p = result.points * scale + center
     return out_p, result.normals, result.history, ref, (center, scale, pn), ocfg
 
@@ -595,21 +618,32 @@ def run(cfg: DictConfig) -> dict:
         torch.set_num_threads(int(cfg.threads))
     out = run_dir(cfg)
     input_path, clean_path, mesh_path, is_example = _example_defaults(cfg)
-    # Everything that can be refused is checked before any work or any output file.
+    # Everything that can be refused is checked before any work or any output file: settings,
+    # the outputs (claimed: writable, not another run's), the input, the model.
     check_wandb(cfg.get("wandb"))
-    resolve_device(cfg.get("device"))
-    output = resolve_output(cfg, out, "denoised.ply")
-    cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
-                                     bool(cfg.normals.recompute))
+    dev = resolve_device(cfg.get("device"))
     hint = cfg.get("noise")
     if hint is not None and not (float(hint) > 0):
         raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
+    claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
+    output = resolve_output(cfg, out, "denoised.ply")
+    clock = StageClock()  # where the job's time goes: metrics.json profile_s and the log
+    with clock("load"):
+        cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
+                                         bool(cfg.normals.recompute))
+    with clock("reference_setup"):
+        generator, model_note = make_reference(cfg, None) if _explicit_model(cfg) else (None, None)
+    kernel_build = prepare_kernels(dev)
     cloud_in = cloud  # the input as given: scored and drawn as "noisy input"
-    cloud, outlier_report = remove_outliers(cloud, cfg.get("outliers", {}), out,
-                                            None if input_report["normals"] == "from file" else int(cfg.normals.k))
-    estimated = estimate_noise_level(cloud.points)
+    with clock("outliers"):
+        cloud, outlier_report, removed = remove_outliers(
+            cloud, cfg.get("outliers", {}), None if input_report["normals"] == "from file" else int(cfg.normals.k))
+    with clock("noise_estimate"):
+        estimated = estimate_noise_level(cloud.points)
     noise = float(hint) if hint is not None else estimated
-    generator, model_note = make_reference(cfg, noise)
+    if generator is None:
+        with clock("reference_setup"):
+            generator, model_note = make_reference(cfg, noise)
     if generator.noise_level and not 0.5 < noise / generator.noise_level < 2.0:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
@@ -617,7 +651,10 @@ def run(cfg: DictConfig) -> dict:
     budget_note = resolve_budget(cfg, len(cloud), by_noise["cycles"])
     spec, spec_source, shading, shading_name = resolve_channel(cfg, generator, budget_note)
     fusion_config(cfg, shading)  # a bad fusion block is refused before any work
-    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
+    # settings resolved: the point count they need is known before any optimisation
+    optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(cloud), f"input {input_path}")
+    with clock("ground_truth"):
+        clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
     if generator.name == "oracle" and clean is None:
         raise ValueError("reference=oracle renders the ground truth: give clean= or mesh=")
     save_config(cfg, out)
@@ -629,14 +666,20 @@ def run(cfg: DictConfig) -> dict:
                                                         f"dss-denoise ({generator.name})", shading=shading,
                                                         noise=noise, clean=clean, mesh=mesh)
     t_opt = time.perf_counter() - t0
+    clock.add("optimization", t_opt)
     nrm_opt = nrm
     mode = str(cfg.normals.get("output", "auto"))
     if mode == "auto":  # the plane fusion's normals (the references' where they agree), else PCA
         mode = "optimized" if "fusion" in history else "pca"
-    nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
-    save_ply(output, PointCloud(pts, nrm))
+    with clock("write"):
+        nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
+        # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
+        output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
+        if removed is not None:
+            outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
 
     protocols = list(cfg.metrics.protocols)
+    t_metrics = time.perf_counter()
     m_in = score(cloud_in.points.numpy(), clean, mesh, protocols)
     m_out = score(pts.numpy(), clean, mesh, protocols)
     normal_error = None
@@ -649,12 +692,14 @@ def run(cfg: DictConfig) -> dict:
                         "pca": normal_error_deg(pts.numpy(), output_normals(pts, nrm_opt, "pca",
                                                                              int(cfg.normals.k)).numpy(), mesh),
                         "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
+    clock.add("metrics", time.perf_counter() - t_metrics)
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
         from dss.metrics import chamfer_floors
 
-        floors = chamfer_floors(mesh, len(cloud_in), int(cfg.seed), protocols, with_mesh=True)
-        floor = {pr: r.to_dict() for pr, r in floors.items()}
+        with clock("chamfer_floor"):
+            floors = chamfer_floors(mesh, len(cloud_in), int(cfg.seed), protocols, with_mesh=True)
+            floor = {pr: r.to_dict() for pr, r in floors.items()}
 
     rows = [(cloud_in.points, cloud_in.normals), (pts, nrm)]
     labels = ["noisy input", f"denoised ({generator.name})"]
@@ -665,7 +710,8 @@ def run(cfg: DictConfig) -> dict:
         rows.append((cp, estimate_normals(cp, k=int(cfg.normals.k))))
         labels.append("clean (ground truth)")
     title = f"dss-denoise {Path(input_path).name}, reference {generator.name}"
-    figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
+    with clock("figures"):
+        figures = write_figures(out, cfg, spec, rows, labels, ref, history, ocfg, title, norm, shading=shading)
 
     metrics = {
         "input": input_report,
@@ -681,7 +727,10 @@ def run(cfg: DictConfig) -> dict:
                    "spec": spec.to_dict()},
         "fusion": history.get("fusion"),
         "normals_output": mode,
-        **optimization_report(history, t_start, t_opt),
+        **optimization_report(history, t_start, t_opt, kernel_build),
+        # seconds per stage of the job; "optimization" split into the loop's parts and the
+        # stages after it (host-side wall time)
+        "profile_s": {**clock.seconds, "optimization_parts": history.get("profile_s", {})},
         "metrics_input": m_in,
         "metrics_output": m_out,
         "chamfer_floor": floor,
@@ -690,8 +739,11 @@ def run(cfg: DictConfig) -> dict:
         "figures": figures,
     }
     save_metrics(metrics, out)
+    log.info("time per stage: %s", clock.summary(metrics["time_s"]["total"]))
+    log.info("optimisation: %s", ", ".join(f"{k} {v:.2f} s" for k, v in history.get("profile_s", {}).items()))
     _log_summary(metrics)
     log_run(cfg, out, metrics, history, figures)
+    release_claims()
     return metrics
 
 
@@ -710,6 +762,7 @@ def _log_summary(metrics: dict) -> None:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="denoise")
+@guarded
 def _main(cfg: DictConfig) -> None:
     m = run(cfg)
     s = m["summary"]
@@ -722,7 +775,7 @@ def _main(cfg: DictConfig) -> None:
 
 def main() -> None:
     positional_to_override("input")
-    _main()
+    run_app(_main)
 
 
 if __name__ == "__main__":

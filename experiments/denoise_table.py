@@ -140,8 +140,9 @@ MESHLAB_SAMPLES = {"bunny": "bunny.obj", "cow": "cow.obj", "airplane": "airplane
 
 
 def meshlab_sample_cases() -> list[dict]:
-    """``{name, mesh}`` cases for pymeshlab's sample meshes (the optional ``baselines`` extra);
-    a clear error when pymeshlab or its sample folder is missing."""
+    """``{name, mesh, held_out}`` cases for pymeshlab's sample meshes (the optional ``baselines``
+    extra; never used for tuning, so held out); a clear error when pymeshlab or its sample folder
+    is missing."""
     try:
         import pymeshlab
     except ImportError as e:
@@ -150,17 +151,23 @@ def meshlab_sample_cases() -> list[dict]:
     missing = [f for f in MESHLAB_SAMPLES.values() if not (root / f).is_file()]
     if missing:
         raise FileNotFoundError(f"meshlab_samples=true: {root} lacks {missing} (this pymeshlab build ships no samples)")
-    return [{"name": name, "mesh": str(root / f)} for name, f in MESHLAB_SAMPLES.items()]
+    return [{"name": name, "mesh": str(root / f), "held_out": True} for name, f in MESHLAB_SAMPLES.items()]
 
 
 def case_list(cfg: DictConfig) -> list[dict]:
     """The configured cases (``cases``, pymeshlab's samples when ``meshlab_samples``, then the
-    generated ones), validated, as plain dicts."""
+    generated ones: ``generated.count`` tuning shapes and the next ``generated.held_out`` of the
+    test split, held out), validated, as plain dicts. A case with ``held_out: true`` is scored in
+    the table's held-out columns and means, apart from the tuning cases."""
     cases = [dict(c) for c in _plain(cfg.get("cases"))]
     if cfg.get("meshlab_samples", False):
         cases += meshlab_sample_cases()
     gen = cfg.get("generated") or {}
-    cases += test_split_shapes(int(gen.get("count", 0) or 0), str(gen.get("preset", "cpu")))
+    count, held = int(gen.get("count", 0) or 0), int(gen.get("held_out", 0) or 0)
+    if count < 0 or held < 0:
+        raise ValueError(f"generated.count and generated.held_out must be >= 0, got {count}, {held}")
+    shapes = test_split_shapes(count + held, str(gen.get("preset", "cpu")))
+    cases += shapes[:count] + [{**c, "held_out": True} for c in shapes[count:]]
     seen = set()
     for c in cases:
         if "name" not in c or not (("mesh" in c) ^ ("family" in c)):
@@ -261,8 +268,9 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
     from dss.io_utils import atomic_write_json
     from experiments.make_example import write_ply
 
-    key = {"case": {k: v for k, v in case.items() if k != "name"}, "points": int(points), "noise": float(noise),
-           "seed": int(seed)}
+    # the case's identity (what its files depend on): not its name, not whether it is held out
+    key = {"case": {k: v for k, v in case.items() if k not in ("name", "held_out")}, "points": int(points),
+           "noise": float(noise), "seed": int(seed)}
     if outliers:  # only when used, so the cases of tables made before the option stay valid
         key["outliers"] = float(outliers)
     if unit != "diag":  # likewise
@@ -557,11 +565,15 @@ def _mean(vals: list[float]) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
-def summarize(records: list[dict], methods: list[str], cases: list[str]) -> list[dict]:
+def summarize(records: list[dict], methods: list[str], cases: list[str], held_out=()) -> list[dict]:
     """Per-method rows: ``{"method", "kind", "cases": {case: {"status", "message", chamfer,
-    hausdorff, p2m}}, "mean": {metric: mean over the scored cases}, "n_scored", "complete",
-    "time_s" (mean over the scored cases), "pareto": {metric: bool}}``; ``cases``: the
-    non-skipped case names (the table's columns)."""
+    hausdorff, p2m}}, "mean": {metric: mean over the scored tuning cases}, "n_scored",
+    "complete", "time_s" (mean over the scored tuning cases), "pareto": {metric: bool}}``, and,
+    when some of ``cases`` are in ``held_out``, the same over those: ``"mean_held_out"``,
+    ``"n_scored_held_out"``, ``"complete_held_out"``; ``cases``: the non-skipped case names (the
+    table's columns)."""
+    held = [c for c in cases if c in set(held_out)]
+    tuning = [c for c in cases if c not in set(held_out)]
     from experiments.baselines.aggregate import pareto_front
 
     rows = []
@@ -575,12 +587,17 @@ def summarize(records: list[dict], methods: list[str], cases: list[str]) -> list
             m = r.get("metrics") or {}
             cells[c] = {"status": r["status"], "message": r.get("message", ""), "time_s": r.get("time_s"),
                         **{k: m.get(k) for k in METRIC_KEYS + HALF_KEYS}}
-        scored = [c for c in cases if cells[c]["chamfer"] is not None]
-        rows.append({"method": label, "kind": next(iter(recs.values())).get("kind"), "cases": cells,
-                     "mean": {k: _mean([cells[c][k] for c in scored]) for k in METRIC_KEYS + HALF_KEYS},
-                     "n_scored": len(scored), "complete": bool(cases) and len(scored) == len(cases),
-                     "time_s": _mean([cells[c]["time_s"] for c in scored]),
-                     "statuses": sorted({cells[c]["status"] for c in cases})})
+        scored = [c for c in tuning if cells[c]["chamfer"] is not None]
+        row = {"method": label, "kind": next(iter(recs.values())).get("kind"), "cases": cells,
+               "mean": {k: _mean([cells[c][k] for c in scored]) for k in METRIC_KEYS + HALF_KEYS},
+               "n_scored": len(scored), "complete": bool(tuning) and len(scored) == len(tuning),
+               "time_s": _mean([cells[c]["time_s"] for c in scored]),
+               "statuses": sorted({cells[c]["status"] for c in cases})}
+        if held:
+            scored_h = [c for c in held if cells[c]["chamfer"] is not None]
+            row.update({"mean_held_out": {k: _mean([cells[c][k] for c in scored_h]) for k in METRIC_KEYS + HALF_KEYS},
+                        "n_scored_held_out": len(scored_h), "complete_held_out": len(scored_h) == len(held)})
+        rows.append(row)
     ranked = [r for r in rows if r["kind"] not in ("input", "floor") and r["complete"] and r["time_s"] is not None]
     for r in rows:
         r["pareto"] = {}
@@ -599,25 +616,34 @@ def _fmt(v: float | None) -> str:
 def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: list[str]) -> str:
     """The paper-style table: rows = methods, columns = CD/HD/P2M per case, means, time; the best
     method value per column in bold (input and floor rows excluded; means only of complete rows);
-    a failure shows as its status; † marks an output worse than the noisy input (Chamfer)."""
-    cases = [c["name"] for c in case_info if c["status"] != "skipped"]
-    cols = [(c, k) for c in cases for k in METRIC_KEYS] + [("mean", k) for k in METRIC_KEYS] + [("time", None)]
+    a failure shows as its status; † marks an output worse than the noisy input (Chamfer).
+    Held-out cases (``held_out`` in their case dict) come after the tuning cases, marked in the
+    header, with their own means (``held-out mean``)."""
+    held = {c["name"] for c in case_info if c.get("held_out")}
+    names = [c["name"] for c in case_info if c["status"] != "skipped"]
+    cases = [c for c in names if c not in held] + [c for c in names if c in held]
+    agg = ["mean"] + (["held-out mean"] if any(c in held for c in cases) else [])
+    cols = [(c, k) for c in cases for k in METRIC_KEYS] + [(a, k) for a in agg for k in METRIC_KEYS] + [("time", None)]
+    aggregate = {"mean": ("mean", "complete"), "held-out mean": ("mean_held_out", "complete_held_out")}
 
     def value(r, c, k):
-        if c == "mean":
-            return r["mean"][k]
+        if c in aggregate:
+            return (r.get(aggregate[c][0]) or {}).get(k)
         if c == "time":
             return r["time_s"]
         return r["cases"][c][k]
 
+    def complete(r, c):
+        return r.get(aggregate[c][1], False) if c in aggregate else (r["complete"] if c == "time" else True)
+
     best = {}
     for c, k in cols:
-        vals = [value(r, c, k) for r in rows if r["kind"] not in ("input", "floor")
-                and (c not in ("mean", "time") or r["complete"])]
+        vals = [value(r, c, k) for r in rows if r["kind"] not in ("input", "floor") and complete(r, c)]
         vals = [v for v in vals if v is not None and math.isfinite(v)]
         best[(c, k)] = min(vals) if vals else None
 
-    head = ["method"] + [f"{c} {METRIC_NAMES[k]}" if k else "time (s)" for c, k in cols]
+    head = ["method"] + [f"{c}{' (held out)' if c in held else ''} {METRIC_NAMES[k]}" if k else "time (s)"
+                         for c, k in cols]
     lines = [f"# {title}", "", *[f"- {n}" for n in notes], "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     labels = {"input": "input (noisy)", "floor": "floor (2nd clean sampling)"}
@@ -625,21 +651,24 @@ def render_markdown(rows: list[dict], case_info: list[dict], title: str, notes: 
         out = [labels.get(r["method"], r["method"])]
         for c, k in cols:
             v = value(r, c, k)
-            if c not in ("mean", "time") and v is None:
+            if c not in aggregate and c != "time" and v is None:
                 out.append(r["cases"][c]["status"])
                 continue
             s = _fmt(v)
-            if c == "mean" and v is not None and not r["complete"]:
-                s += f" ({r['n_scored']}/{len(cases)})"
+            if c in aggregate and v is not None and not complete(r, c):
+                n = r["n_scored"] if c == "mean" else r.get("n_scored_held_out", 0)
+                s += f" ({n}/{sum((x in held) == (c != 'mean') for x in cases)})"
             elif (v is not None and best[(c, k)] is not None and v == best[(c, k)] and r["kind"] not in ("input", "floor")
-                  and (c not in ("mean", "time") or r["complete"])):
+                  and complete(r, c)):
                 s = f"**{s}**"
-            if c not in ("mean", "time") and k == "chamfer" and r["cases"][c]["status"] == "worse_than_input":
+            if c not in aggregate and c != "time" and k == "chamfer" and r["cases"][c]["status"] == "worse_than_input":
                 s += " †"
             out.append(s)
         lines.append("| " + " | ".join(out) + " |")
     lines += ["", "† worse than the noisy input (Chamfer). Means over cases: `(k/n)` when only k of the n "
-              "cases have a result (not ranked). time: mean method wall time over the scored cases.", "",
+              "cases have a result (not ranked). time: mean method wall time over the scored cases."
+              + (" mean: over the tuning cases (the settings were chosen on them); held-out mean: over the "
+                 "cases marked (held out), which were not looked at while tuning." if len(agg) > 1 else ""), "",
               "## Accuracy and coverage", "",
               "CD = accuracy + coverage: the mean squared distance from each output point to the clean cloud, "
               "and from each clean point to the output (x1e4). A method that moves points sideways into "
@@ -820,7 +849,10 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
     bar.close()
 
     ready = [c["name"] for c in case_info if c["status"] != "skipped"]
-    rows = summarize(records, methods, ready)
+    held_out = {c["name"] for c in cases if c.get("held_out")}
+    for meta in case_info:  # the table's markdown reads it from the case info
+        meta["held_out"] = meta["name"] in held_out
+    rows = summarize(records, methods, ready, held_out)
     title = f"Point cloud denoising: {points} points, noise {noise:g} x {unit_name}" + (
         f", {outliers:.3g} x {points} uniform outliers" if outliers else "") + (f", seed {seed}" if seed else "") + (
         ", baselines after DSS's outlier removal" if cfg.get("baseline_outlier_removal", False) else "")

@@ -20,6 +20,8 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from experiments.common import guarded
+
 log = logging.getLogger(__name__)
 
 __all__ = ["run", "main", "model_card"]
@@ -145,9 +147,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="export")
-def main(cfg: DictConfig) -> None:
+@guarded
+def _main(cfg: DictConfig) -> None:
     """Console entry point ``dss-export``."""
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point: an expected failure prints one line and exits 2 (experiments.common.run_app)."""
+    from experiments.common import run_app
+
+    run_app(_main)
 
 
 if __name__ == "__main__":

@@ -26,9 +26,14 @@ import torch
 from omegaconf import DictConfig
 
 from experiments.common import (
+    claim_run_dir,
+    guarded,
     optimization_report,
     positional_to_override,
+    prepare_kernels,
+    release_claims,
     resolve_device,
+    run_app,
     run_dir,
     save_config,
     save_metrics,
@@ -38,6 +43,7 @@ from experiments.denoise import (
     load_ground_truth,
     load_input,
     make_reference,
+    optimizer_config,
     resolve_output,
     run_refinement,
     score,
@@ -51,6 +57,10 @@ log = logging.getLogger(__name__)
 
 __all__ = ["run", "main"]
 
+
+#: what a run writes into its run directory (experiments.common.claim_run_dir)
+ARTEFACTS = ("filtered.ply", "before_after.png", "references.png", "loss.png", "loss.json", "metrics.json",
+             "config.yaml")
 
 def _shading(name: str, spec):
     if name == "sun":
@@ -78,6 +88,7 @@ def run(cfg: DictConfig) -> dict:
         mesh_path = mesh_path or str(EXAMPLE_DIR / "mesh.ply")
     check_wandb(cfg.get("wandb"))
     resolve_device(cfg.get("device"))
+    claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
     output = resolve_output(cfg, out, "filtered.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))
@@ -97,6 +108,8 @@ def run(cfg: DictConfig) -> dict:
     spec = load_render_spec(image_size=[int(cfg.image_size)] * 2) if cfg.get("image_size") else load_render_spec()
     shading = _shading(str(cfg.shading), spec)
     clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(points), int(cfg.seed))
+    optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(points), f"input {input_path}")
+    kernel_build = prepare_kernels(resolve_device(cfg.get("device")))
     save_config(cfg, out)
     log.info("filtering %s (%d points%s) with %s at %s px, %s shading", input_path, len(points),
              f", +{noise:g} noise" if noise else "", generator.describe(), list(spec.image_size), cfg.shading)
@@ -105,7 +118,7 @@ def run(cfg: DictConfig) -> dict:
     pts, nrm, history, ref, norm, ocfg = run_refinement(cfg, points, normals, generator, spec,
                                                         f"dss-filter ({generator.name})", shading=shading)
     t_opt = time.perf_counter() - t0
-    save_ply(output, PointCloud(pts, nrm))
+    output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
 
     # How far the geometry moved (input as the reference, paper protocol units).
     moved = evaluate(pts.numpy(), points.numpy(), None, "paper").to_dict()
@@ -131,7 +144,7 @@ def run(cfg: DictConfig) -> dict:
         "reference": generator.describe(),
         "shading": str(cfg.shading),
         "render": {"image_size": list(spec.image_size), "spec": spec.to_dict()},
-        **optimization_report(history, t_start, t_opt),
+        **optimization_report(history, t_start, t_opt, kernel_build),
         "change": {"chamfer_to_input_paper_x1e4": moved["chamfer"],
                    "hausdorff_to_input_paper_x1e3": moved["hausdorff"],
                    "normal_change_deg": {"mean": float(angle.mean()), "median": float(angle.median())}},
@@ -146,10 +159,12 @@ def run(cfg: DictConfig) -> dict:
     log_run(cfg, out, metrics, history, figures, job_type="filter")
     log.info("moved: Chamfer to the input %.3f x1e4 (paper protocol), normals %.1f deg (mean); %.1f s",
              moved["chamfer"], float(angle.mean()), metrics["time_s"]["total"])
+    release_claims()
     return metrics
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="filter")
+@guarded
 def _main(cfg: DictConfig) -> None:
     m = run(cfg)
     print(f"filtered cloud: {m['output']} ({m['time_s']['total']:.0f} s); "
@@ -158,7 +173,7 @@ def _main(cfg: DictConfig) -> None:
 
 def main() -> None:
     positional_to_override("input")
-    _main()
+    run_app(_main)
 
 
 if __name__ == "__main__":

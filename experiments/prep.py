@@ -23,6 +23,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from experiments.common import guarded
+
 log = logging.getLogger(__name__)
 
 __all__ = ["run", "main"]
@@ -101,8 +103,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="prep")
-def main(cfg: DictConfig) -> None:
+@guarded
+def _main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point: an expected failure prints one line and exits 2 (experiments.common.run_app)."""
+    from experiments.common import run_app
+
+    run_app(_main)
 
 
 if __name__ == "__main__":

@@ -21,8 +21,13 @@ from dss.pointcloud import load_ply, normalize_unit_diagonal
 from dss.render import render, resolve_backend
 from dss.viz import colorize_depth, colorize_normals, image_grid, save_png, to_uint8
 from experiments.common import (
+    claim_run_dir,
+    guarded,
     positional_to_override,
+    prepare_kernels,
+    release_claims,
     renderer_settings,
+    run_app,
     run_dir,
     save_config,
     save_metrics,
@@ -48,14 +53,24 @@ def make_cameras(cfg: DictConfig, points: torch.Tensor):
     raise ValueError(f"unknown sampler {cfg.sampler!r}: use 'fps' or 'ring'")
 
 
+#: what a run writes into its run directory: an earlier run's files there are refused or, with
+#: overwrite=true, removed first (no older view PNGs stay beside new ones)
+ARTEFACTS = ("views/*.png", "sun.png", "normals.png", "depth.png", "grid.png", "metrics.json", "config.yaml")
+
+
 def run(cfg: DictConfig) -> dict:
     out = run_dir(cfg)
-    save_config(cfg, out)
+    claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
     cloud = load_ply(cfg.input)
+    save_config(cfg, out)
+    # Rendered in units of the bounding-box diagonal whatever ``normalize`` says: the renderer's
+    # near plane and size floors are absolute lengths, so a cloud 1e-6 across would render
+    # empty in its own units. The cameras frame the cloud, so the images do not depend on it.
     points, normals = cloud.points, cloud.normals
-    if cfg.normalize:
-        points, _, _ = normalize_unit_diagonal(points)
+    points, _, scale = normalize_unit_diagonal(points)
     settings = renderer_settings(cfg.renderer)
+    # a first-use compile (when the C++ backend may be used) is not a render time
+    kernel_build = prepare_kernels() if cfg.backend in ("auto", "cpp") else 0.0
     backend = resolve_backend(cfg.backend)
     cams = make_cameras(cfg, points)
     results, timings = {}, {}
@@ -85,24 +100,29 @@ def run(cfg: DictConfig) -> dict:
         "points": len(cloud),
         "views": len(cams),
         "image_size": list(cams.image_size),
+        # camera distance from the cloud's centre: in the input's units unless normalize
+        "camera_distance": float(cams.centers[0].norm()) * (1.0 if cfg.normalize else scale),
         "backend": backend,
         "render_seconds": timings,
+        "kernel_build_seconds": kernel_build,
         "coverage": coverage,
         "outputs": ["grid.png", "sun.png", "normals.png", "depth.png", "views/"],
     }
     save_metrics(metrics, out)
     log.info("rendered %d points x %d views into %s", len(cloud), len(cams), out)
+    release_claims()
     return metrics
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="render_cloud")
+@guarded
 def _main(cfg: DictConfig) -> None:
     run(cfg)
 
 
 def main() -> None:
     positional_to_override("input")
-    _main()
+    run_app(_main)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from experiments.common import guarded
+
 log = logging.getLogger(__name__)
 
 # pix2pix.datamodule.PairStream splits its batch-aligned plan across workers itself, so its
@@ -66,6 +68,18 @@ def _float_metrics(metrics: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def _check_data(node) -> None:
+    """Refuse a missing dataset before anything is built, saying how to make one."""
+    root = node.get("root") if node is not None else None
+    if root is None:
+        return
+    root = Path(str(root))
+    if not (root / "manifest.json").is_file():
+        what = "does not exist" if not root.exists() else "holds no finished dss-pairs dataset (no manifest.json)"
+        raise FileNotFoundError(f"training data {root} {what}: make it with `dss-prep` (it writes data/pairs), "
+                                "or point data.root=<dir> at a dss-prep output")
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train (or resume) per ``cfg``; returns (and writes to metrics.json) the results.
 
@@ -78,6 +92,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     import torch
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
+    _check_data(cfg.get("data"))
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     _atomic_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
@@ -115,10 +130,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         result["global_step"] = int(trainer.global_step)
         result["epoch"] = int(trainer.current_epoch)
         result["noise_level"] = getattr(datamodule, "noise_level", None)
-        ckpt_cb = next((c for c in callbacks if isinstance(c, ModelCheckpoint)), None)
+        from pix2pix.checkpoint import LastCheckpoint
+
+        ckpt_cb = next((c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor), None)
+        last_cb = next((c for c in callbacks if isinstance(c, LastCheckpoint)), None)
         best = ckpt_cb.best_model_path if ckpt_cb is not None else ""
         result["best_ckpt"] = best or None
-        result["last_ckpt"] = (ckpt_cb.last_model_path or None) if ckpt_cb is not None else None
+        last = (last_cb.last_model_path or last_cb.best_model_path) if last_cb is not None else None
+        if not last and ckpt_cb is not None:
+            last = ckpt_cb.last_model_path
+        result["last_ckpt"] = last or None
         result["best_val"] = None
         if best and cfg.get("validate_best", True):
             val = trainer.validate(model, datamodule=datamodule, ckpt_path=best, verbose=False)
@@ -145,11 +166,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
-def main(cfg: DictConfig) -> float | None:
+@guarded
+def _main(cfg: DictConfig) -> float | None:
     """Console entry point ``dss-train``; returns the optimised metric (for sweepers)."""
     result = run(cfg)
     obj = result.get("objective")
     return None if obj is None else float(obj)
+
+
+def main() -> float | None:
+    """Console entry point: an expected failure prints one line and exits 2 (experiments.common.run_app)."""
+    from experiments.common import run_app
+
+    return run_app(_main)
 
 
 if __name__ == "__main__":

@@ -99,3 +99,18 @@ def subprocess_env() -> dict[str, str]:
     env.setdefault("OMP_NUM_THREADS", "1")
     env["HYDRA_FULL_ERROR"] = "1"
     return env
+
+
+class RankDump(L.Callback):
+    """Write each rank's final weights and step to ``<dirpath>/rank<r>.pt`` (DDP agreement checks)."""
+
+    def __init__(self, dirpath: str):
+        self.dirpath = dirpath
+
+    def on_train_end(self, trainer, pl_module):
+        import torch
+
+        Path(self.dirpath).mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu().clone() for k, v in pl_module.state_dict().items()}
+        torch.save({"rank": trainer.global_rank, "world_size": trainer.world_size, "global_step": trainer.global_step,
+                    "state_dict": state}, Path(self.dirpath) / f"rank{trainer.global_rank}.pt")

@@ -36,7 +36,7 @@ FAKES = textwrap.dedent(
 def make_cfg(out: Path, fakes: Path, methods=METHODS, *extra: str):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("denoise_table", overrides=[
-            f"out_dir={out}", "points=1500", "noise=0.01", "generated.count=0", "progress=false",
+            f"out_dir={out}", "points=1500", "noise=0.01", "generated.count=0", "generated.held_out=0", "progress=false",
             f"methods=[{','.join(methods)}]", f"+custom_methods.fake_crash={fakes}:crash",
             f"+custom_methods.fake_hang={fakes}:hang", "+time_limits.fake_hang=2", *extra])
     cfg.cases = [{"name": "tiny", "family": "superquadric", "index": 26, "resolution": 32},
@@ -198,7 +198,7 @@ def test_generated_cases_and_paths(tmp_path):
         cfg = compose("denoise_table")
     assert cfg.out_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
     labels = dt.method_list(cfg)
-    assert labels[-3:] == ["dss_pix2pix", "dss_l0", "dss_identity"] and "cgal_jet" in labels
+    assert labels[-4:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle"] and "cgal_jet" in labels
     req = dt._request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
 
@@ -207,7 +207,7 @@ def test_meshlab_sample_cases(tmp_path, monkeypatch):
     """meshlab_samples=true adds pymeshlab's five sample meshes after the configured cases; without
     pymeshlab it is a clear error, not a silently smaller benchmark."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("denoise_table", ["meshlab_samples=true", "generated.count=1"])
+        cfg = compose("denoise_table", ["meshlab_samples=true", "generated.count=1", "generated.held_out=0"])
     try:
         import pymeshlab  # noqa: F401
     except ImportError:
@@ -249,6 +249,20 @@ def test_markdown_marks_partial_means_and_worse_than_input():
     assert "half" not in [r["method"] for r in rows if r["pareto"].get("chamfer")]
     halves = dt.render_markdown(rows, info, "t", []).split("## Accuracy and coverage")[1].split("## Cases")[0]
     assert "| good |" in halves and "| half |" not in halves  # complete rows only
+    # b held out: its own columns after the tuning cases and its own mean; "mean" is a's alone
+    rows = dt.summarize(recs, ["good", "half", "bad"], ["a", "b"], held_out={"b"})
+    good = next(r for r in rows if r["method"] == "good")
+    assert good["mean"]["chamfer"] == 0.5 and good["mean_held_out"]["chamfer"] == 0.7 and good["complete_held_out"]
+    half = next(r for r in rows if r["method"] == "half")
+    assert half["complete"] and not half["complete_held_out"] and half["n_scored_held_out"] == 0
+    info_h = [{**info[0], "held_out": False}, {**info[1], "held_out": True}]
+    text = dt.render_markdown(rows, info_h, "t", [])
+    head = next(line for line in text.splitlines() if line.startswith("| method"))
+    assert "| b (held out) CD |" in head and "| held-out mean CD |" in head
+    md = _md_rows(text)
+    # columns: a CD/HD/P2M, b CD/HD/P2M, mean x3, held-out mean x3, time
+    assert md["good"][6] == "0.5" and md["half"][6] == "**0.1**" and md["good"][9] == "**0.7**"
+    assert md["half"][9] == "-"
 
 
 def test_score_protocol_noise_in_radius_units(tmp_path, fakes):

@@ -8,7 +8,13 @@ from scenes import front_view_run, sphere_points
 
 from dss.cameras import look_at
 from dss.metrics import evaluate
-from dss.optimize import MultiViewOptimizer, OptimizerConfig, occlusion_counts, window_for_cycle
+from dss.optimize import (
+    MultiViewOptimizer,
+    OptimizationDiverged,
+    OptimizerConfig,
+    occlusion_counts,
+    window_for_cycle,
+)
 from dss.render import RenderSettings, render
 from dss.shading import SunLights
 
@@ -242,6 +248,52 @@ def test_bad_configs_fail_clearly():
         OptimizerConfig(schedule="sometimes")
     with pytest.raises(ValueError, match="nothing to do"):
         OptimizerConfig(cycles=0)
+    with pytest.raises(ValueError, match="blowup_extent"):
+        OptimizerConfig(blowup_extent=-1.0)
+
+
+def test_finite_blowup_is_undone_and_reported(caplog):
+    """lr_points=1e6: every point step throws the cloud far away (finite, so the NaN guard does
+    not see it). Each such step is undone and the rates halved until they work; the result keeps
+    the start's size and the halvings are reported."""
+    with caplog.at_level("WARNING", logger="dss.optimize"):
+        sp, tp, res = _sphere_run(cycles=1, normal_steps=0, point_steps=6, lr_points=1e6)
+    extent = float((res.points.max(0).values - res.points.min(0).values).norm())
+    start = float((sp.max(0).values - sp.min(0).values).norm())
+    assert extent < 2 * start, (extent, start)
+    assert res.history["lr_halvings"] >= 1 and res.history["rejected"]
+    assert "grew the cloud" in res.history["rejected"][0]["why"]
+    assert "learning rates halved" in caplog.text and "unstable" in caplog.text
+
+
+def test_unrecoverable_blowup_raises_with_a_clear_message():
+    with pytest.raises(OptimizationDiverged, match=r"diverged and did not recover.*2 halvings.*lower the learning rates"):
+        _sphere_run(cycles=1, normal_steps=0, point_steps=6, lr_points=1e6, max_lr_halvings=2)
+
+
+def test_loss_blowup_within_a_cycle_restores_the_cycle_start():
+    """A loss far above its cycle's first (same cameras and references) undoes the cycle."""
+    tp, tn = sphere_points(600, 0.4)
+    st = RenderSettings()
+    calls = {"n": 0}
+
+    def ref(cams):
+        return render(tp, tn, cams, st, shading=SUN).images
+
+    cfg = OptimizerConfig(cycles=1, normal_steps=0, point_steps=4, lr_points=0.0, lr_normals=0.0,
+                          projection_weight=0.0, repulsion_weight=0.0, blowup_loss=3.0)
+    opt = MultiViewOptimizer(tp, tn, ref, cfg, st, center=(0, 0, 0), radius=0.5, image_size=32, shading=SUN)
+    real = opt._image_loss
+
+    def loss(images, target):  # the third step's loss is 100x the first
+        calls["n"] += 1
+        return (real(images, target) + 0.01) * (100.0 if calls["n"] == 3 else 1.0)
+
+    opt._image_loss = loss
+    res = opt.run()
+    assert res.history["lr_halvings"] == 1
+    assert "loss rose" in res.history["rejected"][0]["why"]
+    assert math.isnan(res.history["loss"][2]) and torch.allclose(res.points, tp)
 
 
 def test_deform_app_rejects_unknown_target(tmp_path):

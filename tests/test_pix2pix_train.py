@@ -23,6 +23,7 @@ try:
     from tests.pix2pix_fixtures import (  # noqa: F401
         CONF_DIR,
         KillAt,
+        RankDump,
         compose_train,
         pairs_root,
         subprocess_env,
@@ -34,6 +35,7 @@ except ImportError:
     from pix2pix_fixtures import (  # noqa: F401
         CONF_DIR,
         KillAt,
+        RankDump,
         compose_train,
         pairs_root,
         subprocess_env,
@@ -302,6 +304,67 @@ def test_kill_and_resume_continue_exactly(pairs_root, tmp_path, monkeypatch):
             assert torch.allclose(a["state"][p]["exp_avg"], c["state"][p]["exp_avg"], atol=1e-7)
 
 
+class SigtermAt(L.Callback):
+    """Send this process SIGTERM after (epoch, batch), as a scheduler stopping a job would."""
+
+    def __init__(self, epoch: int, batch: int):
+        self.epoch, self.batch = epoch, batch
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        import os
+        import signal
+
+        if trainer.current_epoch == self.epoch and batch_idx == self.batch:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+def test_last_checkpoint_is_written_every_epoch_without_improvement(pairs_root, tmp_path):
+    """lr 0: validation never improves after the first epoch; last.ckpt still follows every epoch,
+    so a run killed in epoch 3 resumes after epoch 2, not after epoch 1."""
+    kill = [f"+callbacks.kill._target_={KillAt.__module__}.KillAt", "+callbacks.kill.epoch=2",
+            "+callbacks.kill.batch=1"]
+    cfg = compose_train(tiny_overrides(pairs_root, tmp_path / "flat", "trainer.max_epochs=3", "model.lr=0.0", *kill))
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        run(cfg)
+    ckpts = tmp_path / "flat" / "checkpoints"
+    best = torch.load(next(ckpts.glob("best-*.ckpt")), map_location="cpu", weights_only=False)
+    last = torch.load(ckpts / "last.ckpt", map_location="cpu", weights_only=False)
+    assert best["global_step"] > 0 and best["epoch"] == 0  # never improved after epoch 1
+    assert last["global_step"] == 2 * best["global_step"]  # saved after epoch 2 all the same
+
+
+def test_sigterm_saves_the_step_reached_and_resume_continues_there(pairs_root, tmp_path, monkeypatch):
+    """A run stopped by SIGTERM mid-epoch writes last.ckpt at the step it reached; resuming
+    from it starts at that step with the saved optimiser state and ends at the planned step."""
+    from experiments import train as train_app
+
+    base = ["trainer.max_epochs=2"]
+    stop = [f"+callbacks.stop._target_={__name__}.SigtermAt", "+callbacks.stop.epoch=1", "+callbacks.stop.batch=1"]
+    cfg = compose_train(tiny_overrides(pairs_root, tmp_path / "a", *base, *stop, "export_onnx=false"))
+    with pytest.raises(SystemExit):  # Lightning's SIGTERMException
+        run(cfg)
+    last = tmp_path / "a" / "checkpoints" / "last.ckpt"
+    ck = torch.load(last, map_location="cpu", weights_only=False)
+    steps_per_epoch = 8  # 16 pairs / batch 4, a D and a G step each
+    assert ck["global_step"] == steps_per_epoch + 2 * 2  # epoch 1, batches 0 and 1 done
+
+    restored: dict = {}
+
+    class Probe(L.Callback):
+        def on_train_start(self, trainer, pl_module):
+            restored["step"] = trainer.global_step
+            restored["opt"] = _opt_states(trainer)
+
+    orig = train_app.instantiate_callbacks
+    monkeypatch.setattr(train_app, "instantiate_callbacks", lambda c: orig(c) + [Probe()])
+    res = run(compose_train(tiny_overrides(pairs_root, tmp_path / "b", *base, f"ckpt_path={last}",
+                                           "export_onnx=false")))
+    assert restored["step"] == ck["global_step"]
+    for got, saved in zip(restored["opt"], ck["optimizer_states"]):
+        _assert_same_opt_state(got, saved)
+    assert res["global_step"] == 2 * steps_per_epoch
+
+
 def test_run_dir_contents_and_export(trained_run):
     out = Path(trained_run["output_dir"])
     metrics = json.loads((out / "metrics.json").read_text())
@@ -378,3 +441,50 @@ def test_bench_train_times_every_kind_of_preset(tmp_path):
     rows = json.loads(out.read_text())["results"]
     assert [r["preset"] for r in rows] == ["tiny", "paper"] and res["results"] == rows
     assert all(r["images_per_s"] and r["images_per_s"] > 0 and r["timed_batches"] == 1 for r in rows)
+
+
+# ---- scale-out -----------------------------------------------------------------------------------
+def _ddp_cmd(pairs_root, out: Path, dump: Path, *extra: str) -> list[str]:
+    """dss-train under conf/trainer/ddp.yaml, on 2 CPU processes (gloo) instead of 4 GPUs."""
+    return [sys.executable, "-m", "experiments.train", "trainer=ddp", "trainer.accelerator=cpu",
+            "trainer.devices=2", "trainer.sync_batchnorm=false", "model=tiny", "logger=none",
+            f"data.root={pairs_root}", "data.noise_level=0.01", "data.batch_size=4", "data.val_batch_size=4",
+            "data.num_workers=0", "data.persistent_workers=false", "trainer.num_sanity_val_steps=0",
+            "callbacks.progress_bar=null", "+trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
+            "torch_threads=1", "export_onnx=false", "validate_best=false",
+            f"+callbacks.dump._target_={RankDump.__module__}.RankDump", f"+callbacks.dump.dirpath={dump}",
+            f"hydra.run.dir={out}", *extra]
+
+
+def _ranks(dump: Path) -> list[dict]:
+    return [torch.load(dump / f"rank{r}.pt", map_location="cpu", weights_only=False) for r in (0, 1)]
+
+
+def test_ddp_on_two_cpu_processes_agrees_and_resumes(pairs_root, tmp_path):
+    """Lightning DDP (gloo) with 2 processes: both ranks end with the same weights and step, and
+    the checkpoint resumes under DDP to the planned step with the ranks still in agreement."""
+    import os
+
+    tests_dir = str(Path(__file__).resolve().parent)
+    env = {**subprocess_env(), "MASTER_PORT": str(29500 + (abs(hash(str(tmp_path))) % 2000)),
+           "PYTHONPATH": os.pathsep.join(p for p in (tests_dir, os.environ.get("PYTHONPATH")) if p)}
+    out, dump = tmp_path / "ddp", tmp_path / "dump1"
+    proc = subprocess.run(_ddp_cmd(pairs_root, out, dump, "trainer.max_epochs=1"), capture_output=True, text=True,
+                          env=env, timeout=400, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r0, r1 = _ranks(dump)
+    assert (r0["world_size"], r1["world_size"]) == (2, 2) and r0["global_step"] == r1["global_step"] > 0
+    for k, v in r0["state_dict"].items():
+        assert torch.equal(v, r1["state_dict"][k]), k
+    steps = r0["global_step"]
+    last = out / "checkpoints" / "last.ckpt"
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == steps
+
+    dump2 = tmp_path / "dump2"
+    proc = subprocess.run(_ddp_cmd(pairs_root, tmp_path / "ddp2", dump2, "trainer.max_epochs=2", f"ckpt_path={last}"),
+                          capture_output=True, text=True, env=env, timeout=400, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r0, r1 = _ranks(dump2)
+    assert r0["global_step"] == r1["global_step"] == 2 * steps
+    for k, v in r0["state_dict"].items():
+        assert torch.equal(v, r1["state_dict"][k]), k

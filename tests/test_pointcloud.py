@@ -159,3 +159,45 @@ def test_all_finite_agrees_with_the_elementwise_test():
     both = x.clone()
     both[0, 0], both[1, 0] = float("inf"), -float("inf")  # sum NaN
     assert not all_finite(both)
+
+
+def test_truncated_binary_ply_is_refused_by_name(tmp_path):
+    """A binary PLY cut short must not come back as points at the origin."""
+    from dss.metrics import load_points
+
+    p, _ = sphere_points(3000)
+    full = tmp_path / "full.ply"
+    save_ply(full, PointCloud(p))
+    data = full.read_bytes()
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(PointCloudError, match=r"cut\.ply: truncated: the header declares 3000 vertices"):
+        load_ply(cut, compute_normals=False)
+    with pytest.raises(ValueError, match=r"cut\.ply: truncated"):
+        load_points(cut)
+    assert torch.allclose(load_ply(full, compute_normals=False).points, p)
+
+
+def test_ascii_ply_inf_and_nan_tokens_follow_nan_policy(tmp_path):
+    """ASCII tokens inf/nan are read as values (not the end of the data) and handled by nan_policy;
+    an ASCII body with fewer rows than the header declares is refused."""
+    p, _ = sphere_points(3000)
+    save_ply(tmp_path / "a.ply", PointCloud(p), ascii=True)
+    lines = (tmp_path / "a.ply").read_text().splitlines()
+    body = lines.index("end_header") + 1
+    lines[body + 9] = "inf 0 0"
+    lines[body + 20] = "0 nan 1"
+    f = tmp_path / "tokens.ply"
+    f.write_text("\n".join(lines) + "\n")
+    c = load_ply(f, compute_normals=False)
+    assert len(c) == 2998
+    assert int((c.points.abs().sum(1) == 0).sum()) == 0  # no row became the origin
+    keep = np.ones(3000, bool)
+    keep[[9, 20]] = False
+    assert np.allclose(c.points.numpy(), p.numpy()[keep], atol=1e-5)
+    with pytest.raises(PointCloudError, match=r"tokens\.ply: 2 of 3000 rows hold NaN/inf.*refusing"):
+        load_ply(f, nan_policy="raise")
+    short = tmp_path / "short.ply"
+    short.write_text("\n".join(lines[: body + 100]) + "\n")
+    with pytest.raises(PointCloudError, match=r"short\.ply: truncated: the header declares 3000 vertices, the file holds 100 rows"):
+        load_ply(short, compute_normals=False)
