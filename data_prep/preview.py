@@ -108,10 +108,32 @@ def overview_sheet(families: list[str], out_dir: Path, seeds: int = 4, resolutio
                   "procedural shape families", resolution)
 
 
+def _planes_normal_map(a: np.ndarray) -> np.ndarray:
+    """(H, W, 3) planes -> camera-space normals facing the camera as RGB (black background)."""
+    n = -a / np.linalg.norm(a, axis=-1, keepdims=True).clip(1e-12)
+    return np.where(np.abs(a).max(-1, keepdims=True) > 0, 0.5 + 0.5 * n, 0.0)
+
+
+def _planes_depth_error(noisy: np.ndarray, clean: np.ndarray, render: dict) -> np.ndarray:
+    """|z_noisy - z_clean| (H, W) of two planes renders (0 where either is background)."""
+    H, W = noisy.shape[:2]
+    f = float(render.get("focal") or 0.5 * W / np.tan(np.radians(float(render["fov_deg"])) / 2))
+    x = (np.arange(W) + 0.5 - W / 2) / f
+    y = (np.arange(H) + 0.5 - H / 2) / f
+
+    def z(a):
+        return 1.0 / np.clip(a[..., 0] * x[None, :] + a[..., 1] * y[:, None] + a[..., 2], 1e-3, None)
+
+    both = (np.abs(noisy).max(-1) > 0) & (np.abs(clean).max(-1) > 0)
+    return np.where(both, np.abs(z(noisy) - z(clean)), 0.0)
+
+
 def pairs_sheet(dataset_dir: str | Path, out_path: str | Path, num: int = 6, split: str = "train",
                 noise_level: float | None = None) -> Path:
     """A sheet of ``num`` rendered pairs (noisy | clean | |difference| x4), one per shard, from
-    shards spread over the split (so several shapes and families show)."""
+    shards spread over the split (so several shapes and families show). Planes datasets show
+    their camera-space normals (``0.5 + 0.5 n``) and the implied depth's error |z - z_clean| in
+    units of 3 noise std (white: 3 std or more), over the pixels both renders cover."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -136,10 +158,15 @@ def pairs_sheet(dataset_dir: str | Path, out_path: str | Path, num: int = 6, spl
                 picks.append((z["noisy"][i].astype(np.float32), z["clean"][i].astype(np.float32),
                               pairs[int(ids[i])]))
     picks = picks[:num]
+    planes = str(manifest.get("render", {}).get("shading")) == "planes"
     fig, axes = plt.subplots(len(picks), 3, figsize=(6, 2 * len(picks)), squeeze=False)
     for row, (noisy, clean, p) in enumerate(picks):
-        for col, (img, name) in enumerate(((noisy, "noisy"), (clean, "clean"),
-                                           (np.abs(noisy - clean) * 4, "|diff| x4"))):
+        cols = ((noisy, "noisy"), (clean, "clean"), (np.abs(noisy - clean) * 4, "|diff| x4"))
+        if planes:
+            err = _planes_depth_error(noisy, clean, manifest["render"]) / (3 * shards[0]["noise_level"])
+            cols = ((_planes_normal_map(noisy), "noisy normals"), (_planes_normal_map(clean), "clean normals"),
+                    (np.repeat(err[..., None], 3, -1), "|depth error| / 3 std"))
+        for col, (img, name) in enumerate(cols):
             axes[row, col].imshow(np.clip(img, 0, 1))
             axes[row, col].set_axis_off()
             axes[row, col].set_title(f"{name} {p['shape_id']}" if col < 2 else name, fontsize=6)

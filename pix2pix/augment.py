@@ -18,6 +18,13 @@ safe only if the transformed image is one the same camera+light could have produ
   the light's x equals its y.
 - The three orthogonal RGB **sun lights** of the paper's default shading are not symmetric
   under any of these: no flips.
+- The **planes** channel (``shading: planes``, :func:`dss.shading.plane_coefficients`: a pixel
+  holds the plane ``1/z = a . (x, y, 1)`` at normalised image coordinates) is not lit: a flipped
+  image is the render of the mirrored shape (a shape as valid as any other) once the plane is
+  mirrored too. ``x -> -x`` (hflip) negates ``a_0``, ``y -> -y`` (vflip) negates ``a_1``, and
+  the transpose swaps them; the principal point is the image centre, so a flipped pixel's
+  normalised coordinates are the original's, mirrored. All three flips are safe with those
+  channel changes (:func:`apply_flips` with ``planes=True``).
 - **Photometric changes** (brightness, contrast, gamma, colour jitter): unsafe. Intensity is
   the signal (n . l); scaling it changes the implied normals, and DSS later compares the
   network's output with renders in absolute terms.
@@ -39,7 +46,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FLIPS", "find_camera_light_position", "safe_flips", "apply_flips", "resolve_flips"]
+__all__ = ["FLIPS", "find_camera_light_position", "safe_flips", "apply_flips", "resolve_flips", "is_planes"]
 
 FLIPS = ("hflip", "vflip", "transpose")
 
@@ -53,7 +60,7 @@ def find_camera_light_position(render: dict[str, Any] | None) -> list[float] | N
     if not isinstance(render, dict):
         return None
     shading = str(render.get("shading", "")).lower()
-    # the planes channel's values change sign under a flip (they are not lit by a light)
+    # the planes channel is not lit by a light (safe_flips gives its channel-aware flips)
     if shading in ("sun", "suns", "three_suns", "planes"):
         return None
     candidates: list[tuple[Any, Any]] = []
@@ -74,8 +81,17 @@ def find_camera_light_position(render: dict[str, Any] | None) -> list[float] | N
     return None
 
 
+def is_planes(render: dict[str, Any] | None) -> bool:
+    """Whether a render block is the ``planes`` channel (flips change its channels)."""
+    return isinstance(render, dict) and str(render.get("shading", "")).lower() == "planes"
+
+
 def safe_flips(render: dict[str, Any] | None, rtol: float = 1e-6) -> list[str]:
-    """Flips that leave the camera-fixed light where it is (see module docstring)."""
+    """Flips that leave the camera-fixed light where it is (see module docstring); all three for
+    the ``planes`` channel, whose flips mirror the planes' first two components
+    (:func:`apply_flips` with ``planes=True``)."""
+    if is_planes(render):
+        return list(FLIPS)
     pos = find_camera_light_position(render)
     if pos is None:
         return []
@@ -115,9 +131,17 @@ def resolve_flips(flips: str | Sequence[str] | None, render: dict[str, Any] | No
 
 
 def apply_flips(arrays: Sequence[np.ndarray], flips: Sequence[str],
-                rng: np.random.Generator) -> list[np.ndarray]:
-    """Apply each of ``flips`` with probability 1/2 to all ``arrays`` alike ((H, W, ...) each)."""
+                rng: np.random.Generator, planes: Sequence[bool] | bool = False) -> list[np.ndarray]:
+    """Apply each of ``flips`` with probability 1/2 to all ``arrays`` alike ((H, W, ...) each).
+
+    ``planes``: per array (or one value for all), whether it holds planes (H, W, C >= 2) whose
+    first two channels are the ``x`` and ``y`` components (the planes channel, or normalised
+    image coordinates): hflip negates channel 0, vflip channel 1, transpose swaps them.
+    """
     out = list(arrays)
+    kinds = [bool(planes)] * len(out) if isinstance(planes, bool) else [bool(p) for p in planes]
+    if len(kinds) != len(out):
+        raise ValueError(f"planes: {len(kinds)} flags for {len(out)} arrays")
     for f in flips:
         if rng.random() < 0.5:
             if f == "hflip":
@@ -126,4 +150,19 @@ def apply_flips(arrays: Sequence[np.ndarray], flips: Sequence[str],
                 out = [a[::-1] for a in out]
             elif f == "transpose":
                 out = [np.swapaxes(a, 0, 1) for a in out]
+            out = [_mirror_planes(a, f) if k else a for a, k in zip(out, kinds)]
     return out
+
+
+def _mirror_planes(a: np.ndarray, flip: str) -> np.ndarray:
+    """The channel change of ``flip`` on planes (H, W, C): see :func:`apply_flips`."""
+    if a.ndim != 3 or a.shape[-1] < 2:
+        raise ValueError(f"planes must be (H, W, C >= 2), got {a.shape}")
+    a = np.array(a)  # a copy: the input may be a read-only memory map
+    if flip == "hflip":
+        a[..., 0] = -a[..., 0]
+    elif flip == "vflip":
+        a[..., 1] = -a[..., 1]
+    elif flip == "transpose":
+        a[..., [0, 1]] = a[..., [1, 0]]
+    return a

@@ -18,8 +18,12 @@ or not, see it; :class:`Pix2PixDataModule.set_epoch` is called by the LightningM
 train epoch start (Lightning only calls ``set_epoch`` on samplers).
 
 Samples are dicts: ``noisy``, ``clean`` (3, h, w) float32, ``mask`` (h, w) bool, ``pair_id``
-int64. Augmentations: random crops (train), flips only where the lighting allows (see
-:mod:`pix2pix.augment`).
+int64, and for the ``planes`` channel ``coords`` (2, h, w) float32: the normalised image
+coordinates ``(x, y)`` of the pixels in the full render (:func:`pix2pix.metrics.pixel_coords`;
+through a crop and flips, those of the pixel the sample shows), with which a plane gives its
+inverse depth (the planes losses and metrics of :mod:`pix2pix.module`). Augmentations: random
+crops (train), flips only where the lighting allows, planes flips with their channel changes
+(see :mod:`pix2pix.augment`).
 """
 
 from __future__ import annotations
@@ -34,13 +38,27 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from .augment import apply_flips, resolve_flips
+from .augment import apply_flips, is_planes, resolve_flips
+from .metrics import pixel_coords
 from .networks import SIZE_MULTIPLE
 from .shards import ShardRef, noise_levels_of, open_shard, read_manifest, select_shards
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PairStream", "Pix2PixDataModule"]
+__all__ = ["PairStream", "Pix2PixDataModule", "render_focal"]
+
+
+def render_focal(render: dict[str, Any] | None, image_size: Sequence[int]) -> float:
+    """Focal length in pixels of a manifest's render block: its ``focal``, else from ``fov_deg``
+    (horizontal) and the image width."""
+    import math
+
+    render = render or {}
+    if render.get("focal"):
+        return float(render["focal"])
+    if render.get("fov_deg"):
+        return 0.5 * float(image_size[1]) / math.tan(math.radians(float(render["fov_deg"])) / 2)
+    raise ValueError("the dataset's render block has neither focal nor fov_deg")
 
 
 class PairStream(IterableDataset):
@@ -60,6 +78,12 @@ class PairStream(IterableDataset):
         max_pairs: use only the first ``max_pairs`` pairs of the plan order of epoch 0 when not
             shuffling (a fixed, evenly spread validation subset); None for all.
         rank, world_size: DDP position (set by the DataModule from the trainer).
+        planes: the shards hold the ``planes`` channel: flips mirror the planes, and samples
+            carry ``coords``.
+        crop_min_coverage: random crops: up to 8 positions are drawn and the first whose
+            covered fraction (the shards' mask) reaches this is taken (else the most covered
+            one); 0 takes the first draw. Renders are mostly background, which teaches little.
+        focal: the renders' focal length in pixels (needed with ``planes``).
     """
 
     def __init__(
@@ -78,8 +102,16 @@ class PairStream(IterableDataset):
         max_pairs: int | None = None,
         rank: int = 0,
         world_size: int = 1,
+        planes: bool = False,
+        focal: float | None = None,
+        crop_min_coverage: float = 0.0,
     ):
         super().__init__()
+        self.crop_min_coverage = float(crop_min_coverage)
+        if planes and not (focal and focal > 0):
+            raise ValueError(f"planes shards need the renders' focal length, got {focal}")
+        self.planes = bool(planes)
+        self.focal = None if focal is None else float(focal)
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.shards = list(shards)
@@ -167,28 +199,50 @@ class PairStream(IterableDataset):
     def _sample(self, arrays: dict[str, np.ndarray], row: int,
                 rng: np.random.Generator) -> dict[str, Any]:
         h, w = self.image_size
+        y0 = x0 = 0
         if self.crop_size:
             c = self.crop_size
             if self.random_crop:
-                y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+                y0, x0 = self._crop_position(arrays["mask"], row, c, rng)
             else:
                 y0, x0 = (h - c) // 2, (w - c) // 2
             sl = (row, slice(y0, y0 + c), slice(x0, x0 + c))
         else:
             sl = (row, slice(None), slice(None))
-        noisy, clean, mask = arrays["noisy"][sl], arrays["clean"][sl], arrays["mask"][sl]
+        items = [arrays["noisy"][sl], arrays["clean"][sl], arrays["mask"][sl]]
+        if self.planes:  # the pixels' coordinates in the full render travel with them
+            items.append(pixel_coords(self.image_size, self.focal, self.output_size, (y0, x0)).permute(1, 2, 0).numpy())
         if self.flips:
-            noisy, clean, mask = apply_flips([noisy, clean, mask], self.flips, rng)
+            items = apply_flips(items, self.flips, rng, planes=[self.planes, self.planes, False, True][:len(items)])
 
         def chw(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.array(a, dtype=np.float32).transpose(2, 0, 1).copy())
 
-        return {
-            "noisy": chw(noisy),
-            "clean": chw(clean),
-            "mask": torch.from_numpy(np.array(mask, dtype=bool)),
+        sample = {
+            "noisy": chw(items[0]),
+            "clean": chw(items[1]),
+            "mask": torch.from_numpy(np.array(items[2], dtype=bool)),
             "pair_id": torch.tensor(int(arrays["pair_id"][row]), dtype=torch.int64),
         }
+        if self.planes:
+            sample["coords"] = chw(items[3])
+        return sample
+
+    def _crop_position(self, mask: np.ndarray, row: int, c: int, rng: np.random.Generator) -> tuple[int, int]:
+        """(y0, x0) of a random crop (``crop_min_coverage``, see the class docstring)."""
+        h, w = self.image_size
+        draw = lambda: (int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1)))  # noqa: E731
+        if self.crop_min_coverage <= 0:
+            return draw()
+        best, best_cov = None, -1.0
+        for _ in range(8):
+            y0, x0 = draw()
+            cov = float(np.asarray(mask[row, y0:y0 + c, x0:x0 + c]).mean())
+            if cov >= self.crop_min_coverage:
+                return y0, x0
+            if cov > best_cov:
+                best, best_cov = (y0, x0), cov
+        return best
 
     def __iter__(self):
         epoch = self.epoch
@@ -214,6 +268,7 @@ class Pix2PixDataModule(L.LightningDataModule):
         crop_size: square training crop side (multiple of 4); None trains on full renders.
         val_crop_size: centred validation crop; None validates on full renders.
         flips: ``"auto"`` (the flips the dataset's light allows), ``"none"``, or a list.
+        crop_min_coverage: covered fraction a training crop should reach (:class:`PairStream`).
         interleave: shards pooled per shuffle group (train).
         max_val_pairs: fixed evenly spread validation subset (CPU budgets); None for all.
         num_workers, pin_memory, persistent_workers, prefetch_factor: DataLoader options.
@@ -230,6 +285,7 @@ class Pix2PixDataModule(L.LightningDataModule):
         crop_size: int | None = None,
         val_crop_size: int | None = None,
         flips: str | Sequence[str] | None = "auto",
+        crop_min_coverage: float = 0.0,
         interleave: int = 4,
         max_val_pairs: int | None = None,
         num_workers: int = 0,
@@ -247,6 +303,7 @@ class Pix2PixDataModule(L.LightningDataModule):
         self.crop_size = crop_size
         self.val_crop_size = val_crop_size
         self.flips_cfg = flips if isinstance(flips, str) or flips is None else list(flips)
+        self.crop_min_coverage = float(crop_min_coverage)
         self.interleave = interleave
         self.max_val_pairs = max_val_pairs
         self.num_workers = int(num_workers)
@@ -260,6 +317,11 @@ class Pix2PixDataModule(L.LightningDataModule):
         self.val_set: PairStream | None = None
         self.test_set: PairStream | None = None
         self.flips: list[str] = []
+
+    @property
+    def planes(self) -> bool:
+        """Whether the dataset is in the ``planes`` channel (after the manifest is read)."""
+        return is_planes((self.manifest or {}).get("render"))
 
     # ---- manifest ------------------------------------------------------------------------------
     def _load_manifest(self) -> dict[str, Any]:
@@ -301,6 +363,9 @@ class Pix2PixDataModule(L.LightningDataModule):
             max_pairs=None if train else self.max_val_pairs,
             rank=rank,
             world_size=world,
+            planes=self.planes,
+            crop_min_coverage=self.crop_min_coverage if train else 0.0,
+            focal=render_focal(manifest.get("render"), manifest["image_size"]) if self.planes else None,
         )
 
     def setup(self, stage: str | None = None) -> None:

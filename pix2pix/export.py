@@ -86,6 +86,9 @@ def build_metadata(info: dict[str, Any]) -> dict[str, str]:
         "input_range": "render values, about [0, 1] (unbounded)",
         "output_range": "unbounded (no tanh), same range as the input",
     }
+    if str((data.get("render") or {}).get("shading", "")).lower() == "planes":
+        norm["input_range"] = ("planes: per pixel the camera-space plane a of 1/z = a . (x, y, 1) "
+                               "(dss.shading.plane_coefficients), 0 on the background")
 
     def js(v: Any) -> str:
         return json.dumps(v, sort_keys=True)

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["l1", "smape", "psnr", "image_metrics", "SMAPE_EPS"]
+__all__ = ["l1", "smape", "psnr", "image_metrics", "SMAPE_EPS", "DEPTH_ERROR_CAP", "pixel_coords",
+           "planes_inverse_depth", "surface_pixels", "planes_errors", "planes_metric_sums"]
 
 SMAPE_EPS = 1e-5
 
@@ -86,3 +87,78 @@ def image_metrics(pred: torch.Tensor, target: torch.Tensor,
         "smape": float(smape(pred, target, mask)),
         "psnr": float(psnr(pred, target, mask)),
     }
+
+
+# ------------------------------------------------------------------------------ planes channel
+#: depth errors are capped at this many bounding-box diagonals in the mean (a pixel showing
+#: another surface than the clean render, at a silhouette or an occlusion edge, would otherwise
+#: dominate it; the plane fusion ignores observations that far off anyway)
+DEPTH_ERROR_CAP = 0.05
+#: the smallest inverse depth read from an image (a smaller one, e.g. the network's output on a
+#: pixel it calls background, counts as depth 1 / PLANES_MIN_INV, i.e. a capped error)
+PLANES_MIN_INV = 1e-3
+
+
+def pixel_coords(full_size, focal: float, window=None, offset=(0, 0)) -> torch.Tensor:
+    """Normalised image coordinates (2, h, w) of the pixel centres, ``(x, y) = ((u - c_x) / f,
+    (v - c_y) / f)`` with ``u = column + 0.5``, ``v = row + 0.5`` and the principal point at the
+    centre of the full render (``full_size`` = (H, W); the cameras of ``dss.cameras.look_at``),
+    over the (h, w) ``window`` (default: the full render) whose first pixel is at ``offset`` =
+    (row, column) of the full render (a training crop)."""
+    H, W = int(full_size[0]), int(full_size[1])
+    h, w = (H, W) if window is None else (int(window[0]), int(window[1]))
+    y0, x0 = int(offset[0]), int(offset[1])
+    x = (torch.arange(w, dtype=torch.float32) + x0 + 0.5 - W / 2.0) / float(focal)
+    y = (torch.arange(h, dtype=torch.float32) + y0 + 0.5 - H / 2.0) / float(focal)
+    return torch.stack([x[None, :].expand(h, w), y[:, None].expand(h, w)])
+
+
+def planes_inverse_depth(img: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """Inverse depth (B, H, W) that a ``planes`` image (B, 3, H, W) gives at its pixels, with
+    ``coords`` (B, 2, H, W) their normalised image coordinates: ``a_0 x + a_1 y + a_2``
+    (:func:`dss.shading.planes_inverse_depth` in the pix2pix layout)."""
+    return img[:, 0] * coords[:, 0] + img[:, 1] * coords[:, 1] + img[:, 2]
+
+
+def surface_pixels(noisy: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) bool: pixels both the clean and the noisy render cover (the surface pixels of
+    the planes metrics; outside the input's coverage the pipeline keeps its background)."""
+    return (clean.abs().amax(1) > 0) & (noisy.abs().amax(1) > 0)
+
+
+def planes_errors(img: torch.Tensor, clean: torch.Tensor, coords: torch.Tensor,
+                  where: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per-pixel geometric errors of a ``planes`` image against the clean render, at ``where``
+    (B, H, W) bool (1-D tensors over those pixels):
+
+    - ``depth``: |z - z_clean| in the renders' length unit (bounding-box diagonals), z = 1 /
+      the implied inverse depth (at least :data:`PLANES_MIN_INV`);
+    - ``depth_signed``: z - z_clean (negative: in front of the clean surface);
+    - ``normal_deg``: angle between the planes' directions (their normals), degrees;
+    - ``abs``: |img - clean| summed over channels; ``smape``: the paper's SMAPE (channel sum).
+    """
+    inv = planes_inverse_depth(img, coords)[where]
+    inv_c = planes_inverse_depth(clean, coords)[where]
+    z = 1.0 / inv.clamp_min(PLANES_MIN_INV)
+    z_c = 1.0 / inv_c.clamp_min(PLANES_MIN_INV)
+    a = img.permute(0, 2, 3, 1)[where]
+    b = clean.permute(0, 2, 3, 1)[where]
+    cos = torch.nn.functional.cosine_similarity(a, b, dim=1, eps=1e-12).clamp(-1, 1)
+    return {"depth": (z - z_c).abs(), "depth_signed": z - z_c, "normal_deg": torch.rad2deg(torch.acos(cos)),
+            "abs": (a - b).abs().sum(1), "smape": ((a - b).abs() / (a.abs() + b.abs() + SMAPE_EPS)).sum(1)}
+
+
+def planes_metric_sums(img: torch.Tensor, clean: torch.Tensor, coords: torch.Tensor,
+                       where: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Sums over the ``where`` pixels (divide by their count, ``pixels``) of the planes metrics:
+    ``surface_l1`` (mean over channels), ``surface_smape``, ``depth_err`` (capped at
+    :data:`DEPTH_ERROR_CAP`), ``depth_bias`` (signed error where |error| < the cap; with
+    ``depth_bias_pixels``), ``depth_within_1e-3`` (the count within 0.001 diagonals) and
+    ``normal_err_deg``."""
+    e = planes_errors(img, clean, coords, where)
+    inside = e["depth"] < DEPTH_ERROR_CAP
+    d = e["depth"].double()
+    return {"surface_l1": e["abs"].double().sum() / 3.0, "surface_smape": e["smape"].double().sum(),
+            "depth_err": d.clamp_max(DEPTH_ERROR_CAP).sum(), "depth_bias": e["depth_signed"].double()[inside].sum(),
+            "depth_bias_pixels": inside.double().sum(), "depth_within_1e-3": (d < 1e-3).double().sum(),
+            "normal_err_deg": e["normal_deg"].double().sum(), "pixels": where.double().sum()}

@@ -36,6 +36,19 @@ output, the denoiser as the runtime ships it, are logged as ``val/snap_{...}`` a
 grid (rows: noisy | output | clean) as PNG into ``<run dir>/val_grids/`` and sends it to the
 loggers that take images (TensorBoard, W&B).
 
+The ``planes`` channel (batches with ``coords``, :mod:`pix2pix.datamodule`): every pixel holds a
+plane whose inverse depth at the pixel is ``a_0 x + a_1 y + a_2``. Two terms can join the L1 on
+the channels, over the surface pixels (covered by the clean and the noisy render): ``lambda_depth``
+x the L1 of that implied inverse depth against the clean render's (the quantity the plane fusion
+reads), and ``lambda_normal`` x the L1 between the output's and the clean planes' unit
+directions (their normals; mean over the 3 components). A generator that takes ``coords``
+(:class:`pix2pix.networks.PlanesGenerator`) gets the batch's pixel coordinates. Validation then adds, for the output and the noisy input, the
+geometry the planes imply (:func:`pix2pix.metrics.planes_metric_sums`): ``val/depth_err`` (mean
+|z - z_clean| in bounding-box diagonals, capped at 0.05), ``val/depth_bias``,
+``val/depth_within_1e-3``, ``val/normal_err_deg``, ``val/surface_l1``, ``val/surface_smape``,
+each also as ``val/noisy_...``, and ``val/surface_smape_reduction``, ``val/depth_err_reduction``,
+``val/normal_err_reduction``.
+
 Checkpoints carry ``checkpoint["dss_pix2pix"]``: the generator/discriminator constructor configs
 (JSON) and what the model knows about its data (noise level, render settings, sizes), so that a
 checkpoint can be rebuilt and exported without Hydra (:func:`load_generator`).
@@ -57,9 +70,10 @@ from torch import nn
 
 from ._io import atomic_write_bytes
 from .metrics import l1 as l1_metric
+from .metrics import planes_inverse_depth, planes_metric_sums, surface_pixels
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered
+from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered, generator_from_config
 from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
@@ -122,6 +136,9 @@ class Pix2PixModule(L.LightningModule):
         name: preset name (recorded into exports).
         lambda_coverage: weight of the coverage head's cross-entropy (generators with one).
         init_from: warm-start the generator's weights from this ``.ckpt`` or ``.onnx`` file.
+        lambda_depth: weight of the L1 of the implied inverse depth (planes batches, see the
+            module docstring).
+        lambda_normal: weight of the L1 of the planes' unit directions (planes batches).
     """
 
     def __init__(
@@ -142,6 +159,8 @@ class Pix2PixModule(L.LightningModule):
         name: str = "custom",
         lambda_coverage: float = 10.0,
         init_from: str | None = None,
+        lambda_depth: float = 0.0,
+        lambda_normal: float = 0.0,
     ):
         super().__init__()
         if lr_schedule not in ("constant", "linear"):
@@ -201,7 +220,7 @@ class Pix2PixModule(L.LightningModule):
         noisy, clean = batch["noisy"], batch["clean"]
         opts = self._opts()
         opt_g = opts[0]
-        image, logit = _image_and_coverage(self.generator, noisy)
+        image, logit = _image_and_coverage(self.generator, noisy, batch.get("coords"))
         logs: dict[str, torch.Tensor] = {}
         if logit is None:
             fake = l1_image = image
@@ -225,6 +244,18 @@ class Pix2PixModule(L.LightningModule):
         self.toggle_optimizer(opt_g)
         loss_l1 = F.l1_loss(l1_image, clean)
         loss_g = self.hparams.lambda_l1 * loss_l1
+        coords = batch.get("coords")
+        lam_d, lam_n = float(self.hparams.get("lambda_depth", 0.0)), float(self.hparams.get("lambda_normal", 0.0))
+        if coords is not None and (lam_d > 0 or lam_n > 0):
+            surf = surface_pixels(noisy, clean)
+            if bool(surf.any()):
+                loss_depth = (planes_inverse_depth(l1_image, coords) - planes_inverse_depth(clean, coords)).abs()[surf].mean()
+                n_out = F.normalize(l1_image, dim=1, eps=1e-8)
+                n_clean = F.normalize(clean, dim=1, eps=1e-8)
+                loss_normal = (n_out - n_clean).abs().mean(1)[surf].mean()
+                loss_g = loss_g + lam_d * loss_depth + lam_n * loss_normal
+                logs["train/depth_l1"] = loss_depth.detach()
+                logs["train/normal_l1"] = loss_normal.detach()
         if logit is not None:
             loss_cov = F.binary_cross_entropy_with_logits(logit, clean_cov.to(logit.dtype))
             loss_g = loss_g + self.hparams.lambda_coverage * loss_cov
@@ -274,7 +305,7 @@ class Pix2PixModule(L.LightningModule):
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         noisy, clean = batch["noisy"], batch["clean"]
         mask = batch.get("mask")
-        out, logit = _image_and_coverage(self.generator, noisy)
+        out, logit = _image_and_coverage(self.generator, noisy, batch.get("coords"))
         if logit is not None:
             out, gate = apply_coverage(out, logit), logit > 0
             either = covered(noisy) | covered(clean)
@@ -295,6 +326,12 @@ class Pix2PixModule(L.LightningModule):
             self._accumulate(prefix + "smape_full", smape_metric(img, clean), b)
         self._accumulate("pixels", torch.ones((), device=noisy.device), npx)
         self._accumulate("count", torch.ones((), device=noisy.device), b)
+        coords = batch.get("coords")
+        if coords is not None:  # the geometry the planes imply (module docstring)
+            surf = surface_pixels(noisy, clean)
+            for prefix, img in (("", out), ("noisy_", noisy)):
+                for k, v in planes_metric_sums(img, clean, coords, surf).items():
+                    self._accumulate(f"planes:{prefix}{k}", v, 1.0)
         k = self.hparams.num_grid_images
         if k > 0 and (self._val_grid is None or self._val_grid[0].shape[0] < k):
             take = (noisy[:k], out[:k], clean[:k])
@@ -312,8 +349,10 @@ class Pix2PixModule(L.LightningModule):
         count = sums.pop("count").clamp_min(1)
         pixels = sums.pop("pixels").clamp_min(1)
         cov = (sums.pop("coverage_hits", None), sums.pop("coverage_pixels", None))
+        planes = {k[len("planes:"):]: sums.pop(k) for k in [k for k in sums if k.startswith("planes:")]}
         means = {k: float(v / (count if k.endswith(("psnr", "_full")) else pixels))
                  for k, v in sums.items()}
+        means.update(_planes_means(planes))
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
         means["l1_reduction"] = 1.0 - means["l1"] / max(means["noisy_l1"], 1e-12)
@@ -354,6 +393,11 @@ class Pix2PixModule(L.LightningModule):
         dm = getattr(self.trainer, "datamodule", None)
         if dm is not None and hasattr(dm, "info"):
             self.data_info = dm.info()
+        fov = getattr(self.generator, "fov_deg", None)
+        data_fov = (self.data_info.get("render") or {}).get("fov_deg")
+        if fov is not None and data_fov is not None and abs(float(fov) - float(data_fov)) > 1e-6:
+            raise ValueError(f"the generator's fov_deg {fov} is not the data's field of view {data_fov}: "
+                             "set model.generator.fov_deg")
 
     def export_info(self) -> dict[str, Any]:
         """Everything needed to rebuild G and describe it (JSON-able)."""
@@ -382,19 +426,46 @@ class Pix2PixModule(L.LightningModule):
         """Rebuild the module (G, D, hyperparameters, weights) from a checkpoint, without Hydra."""
         ckpt = _read_checkpoint(path, map_location)
         info = ckpt[CHECKPOINT_KEY]
-        gen = ResNetGenerator.from_config(info["generator"])
+        gen = generator_from_config(info["generator"])
         disc = PatchDiscriminator.from_config(info["discriminator"]) if info.get("discriminator") else None
         # init_from=None: the checkpoint holds the weights (the warm-start file may be gone)
         return cls.load_from_checkpoint(path, map_location=map_location, generator=gen,
                                         discriminator=disc, weights_only=False, init_from=None)
 
 
-def _image_and_coverage(generator: nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+def _planes_means(sums: dict[str, torch.Tensor]) -> dict[str, float]:
+    """Validation means of the planes metrics' pooled sums (output and ``noisy_``), with the
+    reductions relative to the noisy input."""
+    out: dict[str, float] = {}
+    for prefix in ("", "noisy_"):
+        if prefix + "pixels" not in sums:
+            continue
+        n = float(sums[prefix + "pixels"].clamp_min(1))
+        for k in ("surface_l1", "surface_smape", "depth_err", "depth_within_1e-3", "normal_err_deg"):
+            out[prefix + k] = float(sums[prefix + k]) / n
+        out[prefix + "depth_bias"] = float(sums[prefix + "depth_bias"]) / float(sums[prefix + "depth_bias_pixels"].clamp_min(1))
+    if "pixels" in sums and "noisy_pixels" in sums:
+        for k in ("surface_smape", "depth_err", "normal_err_deg"):
+            out[k.replace("_deg", "") + "_reduction"] = 1.0 - out[k] / max(out["noisy_" + k], 1e-12)
+    return out
+
+
+def _image_and_coverage(generator: nn.Module, x: torch.Tensor,
+                        coords: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(ungated image, coverage logit or None) of any generator (one without a coverage head,
-    or another image-to-image network, gives (G(x), None))."""
+    or another image-to-image network, gives (G(x), None)); ``coords`` (the batch's pixel
+    coordinates) go to a generator that takes them."""
     if hasattr(generator, "forward_with_coverage"):
+        if coords is not None and _takes_coords(generator):
+            return generator.forward_with_coverage(x, coords)
         return generator.forward_with_coverage(x)
     return generator(x), None
+
+
+def _takes_coords(generator: nn.Module) -> bool:
+    import inspect
+
+    return "coords" in inspect.signature(generator.forward_with_coverage).parameters
 
 
 def load_generator_weights(generator: nn.Module, path: str | Path) -> dict[str, Any]:
@@ -463,7 +534,7 @@ def load_generator(path: str | Path, map_location: str = "cpu") -> tuple[ResNetG
     info = dict(ckpt[CHECKPOINT_KEY])
     if not info.get("generator"):
         raise ValueError(f"{path}: the checkpoint does not describe its generator")
-    gen = ResNetGenerator.from_config(info["generator"])
+    gen = generator_from_config(info["generator"])
     state = _generator_state(ckpt)
     try:
         gen.load_state_dict(state)

@@ -13,6 +13,11 @@ The snap sets a pixel to 0 when its brightest channel is below ``SNAP_FRACTION``
 covered value (ambient x white albedo): the decision boundary halfway between background (0) and
 the darkest lit surface. It is fixed by the render settings of the training data, never fitted to
 validation numbers. Covered pixels keep their (unbounded) values.
+
+Only for the lit channel: renders in the ``planes`` channel (``shading: planes``) hold plane
+coefficients, not intensities (their first two components are signed and about 0 on a surface
+facing the camera), so they are never snapped, whatever ``light`` block their render settings
+carry.
 """
 
 from __future__ import annotations
@@ -35,6 +40,8 @@ def background_snap_threshold(render: dict[str, Any] | None) -> float | None:
     Returns a render intensity (same units as the images, about [0, 1]).
     """
     if not render:
+        return None
+    if str(render.get("shading", "")).lower() == "planes":  # plane coefficients, not intensities
         return None
     light = render.get("light") or {}
     background = float((render.get("renderer") or {}).get("background", 0.0))

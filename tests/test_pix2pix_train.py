@@ -81,7 +81,12 @@ def test_group_options_instantiate(group, tmp_path, wandb_offline_env):
     for option in GROUPS[group]:
         extra = ["trainer.accelerator=cpu"] if group == "trainer" else []
         cfg = compose_train([f"{group}={option}", f"output_dir={tmp_path}", *extra])
-        if group == "data":
+        if group == "data" and option == "onthefly":  # pairs rendered from stored clouds
+            from experiments.onthefly import OnTheFlyDataModule
+
+            dm = hydra.utils.instantiate(cfg.data, noise_level=0.01)
+            assert isinstance(dm, OnTheFlyDataModule) and dm.crop_size == cfg.model.train_crop_size
+        elif group == "data":
             dm = hydra.utils.instantiate(cfg.data)
             assert isinstance(dm, Pix2PixDataModule) and dm.crop_size == cfg.model.train_crop_size
         elif group == "trainer":
@@ -98,10 +103,17 @@ def test_group_options_instantiate(group, tmp_path, wandb_offline_env):
 
 
 @pytest.mark.parametrize("exp,level", [("noise_0.3pct", 0.003), ("noise_1pct", 0.01),
-                                       ("noise_0.3pct_coverage", 0.003)])
+                                       ("noise_0.3pct_coverage", 0.003), ("planes_1pct", 0.01),
+                                       ("planes_0.3pct", 0.003)])
 def test_experiments_compose(exp, level, tmp_path):
     cfg = compose_train([f"experiment={exp}", f"output_dir={tmp_path}"])
     assert cfg.data.noise_level == level
+    if exp.startswith("planes"):  # no GAN term, the planes normalisation and losses
+        model = hydra.utils.instantiate(cfg.model)
+        assert model.discriminator is None and not model.uses_gan
+        assert model.generator.config()["kind"] == "planes" and len(model.generator.config()["input_mean"]) == 4
+        assert model.hparams.lambda_depth > 0 and cfg.data.root == "data/pairs-planes"
+        assert cfg.callbacks.model_checkpoint.monitor == "val/depth_err"
     assert cfg.trainer.accelerator == "cpu" and cfg.model.name == "cpu_small"
     assert hydra.utils.instantiate(cfg.data).noise_level == level
     if exp.endswith("_coverage"):  # warm start from the shipped 0.3% model (+ a coverage head if it has none)

@@ -114,7 +114,7 @@ def test_deform_writes_normal_error_spacing_and_openings(tmp_path):
     from scenes import sphere_points
 
     from dss.pointcloud import PointCloud, save_ply
-    from experiments.deform import run
+    from experiments.apps.deform import run
 
     torch.set_num_threads(1)
     p, n = sphere_points(800, 0.4)

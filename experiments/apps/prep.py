@@ -3,6 +3,8 @@
     dss-prep                              # cpu preset -> data/pairs
     dss-prep prep_preset=tiny out_dir=/tmp/pairs
     dss-prep -m prep_preset=paper         # 16 slices via the joblib launcher (or submitit)
+    dss-prep prep_preset=cpu_planes output=clouds out_dir=data/clouds   # clean clouds only, for
+                                          # pairs rendered on the fly (experiments.onthefly)
 
 Config: ``conf/prep.yaml`` with the shared render group ``conf/render/pairs.yaml`` and the
 presets ``conf/prep_preset/{tiny,cpu,paper}.yaml``. The dataset goes to ``out_dir`` (stable, so
@@ -68,6 +70,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     workers = _workers(cfg)
     rd = _run_dir(out_dir)
     save_config(cfg, rd)
+    output = str(cfg.get("output", "pairs"))
+    if output not in ("pairs", "clouds"):
+        raise ValueError(f"output must be pairs or clouds, got {output!r}")
+    if output == "clouds":
+        from data_prep.clouds import generate_clouds
+
+        stats = generate_clouds(pc, spec, out_dir, overwrite=bool(cfg.get("overwrite", False)),
+                                progress=bool(cfg.get("progress", True)))
+        stats.update({"out_dir": str(out_dir), "output": "clouds", "preset": cfg.get("preset")})
+        save_metrics(stats, rd)
+        return stats
     stats = generate_dataset(
         pc, spec, out_dir, workers=workers, part_index=int(cfg.parts.index), part_count=int(cfg.parts.count),
         overwrite=bool(cfg.get("overwrite", False)), verify_existing=bool(cfg.get("verify_existing", True)),

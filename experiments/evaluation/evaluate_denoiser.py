@@ -11,6 +11,14 @@ channel sum), L1, PSNR of the noisy input, the raw and the snapped output agains
 render, the SMAPE reduction relative to the noisy input (issue target: >= 30%), and SMAPE split
 into the pixels the clean render covers and the halo it does not (where the noise spread the
 silhouette). Writes JSON (atomically) and prints a markdown table.
+
+A model of the ``planes`` channel (its metadata's render block) is not snapped (plane
+coefficients are not intensities); for it the evaluation adds what the planes imply about the
+geometry, for the network output and the noisy input (the identity control), over the surface
+pixels (covered by the clean render and the noisy one, :func:`pix2pix.metrics.surface_pixels`):
+surface-pixel SMAPE and L1, the implied depth's error |z - z_clean| in bounding-box diagonals
+(mean capped at 0.05, median, signed median, fraction within 0.001), and the implied normals'
+angle error (mean, median, degrees), with the reductions relative to the noisy input.
 """
 
 from __future__ import annotations
@@ -46,10 +54,19 @@ def evaluate(model: str | Path, data: str | Path, split: str = "val", max_pairs:
     from pix2pix.runtime import OnnxDenoiser
     from pix2pix.shards import open_shard, read_manifest, select_shards
 
+    from pix2pix.augment import is_planes
+    from pix2pix.datamodule import render_focal
+    from pix2pix.metrics import pixel_coords
+
     den = OnnxDenoiser(model, intra_op_num_threads=threads, max_batch=batch, snap_background=False)
     thr = background_snap_threshold(den.render_settings)  # what the runtime's default snap uses
     level = den.noise_level
     manifest = read_manifest(data)
+    planes = is_planes(den.render_settings)
+    if planes != is_planes(manifest.get("render")):
+        raise ValueError(f"{model} and {data} are not in the same render channel")
+    coords = pixel_coords(manifest["image_size"], render_focal(manifest["render"], manifest["image_size"])) if planes else None
+    geo = {"noisy": [], "raw": []}
     shards = select_shards(data, manifest, split, level)
     keys = ("noisy", "raw", "snapped")
     sums = {k: {} for k in keys}
@@ -66,6 +83,14 @@ def evaluate(model: str | Path, data: str | Path, split: str = "val", max_pairs:
             raw = den(noisy)
             imgs = {"noisy": torch.from_numpy(noisy), "raw": torch.from_numpy(raw),
                     "snapped": torch.from_numpy(snap_background(raw, thr, channel_dim=1))}
+            if planes:
+                from pix2pix.metrics import planes_errors, surface_pixels
+
+                surf = surface_pixels(imgs["noisy"], clean)
+                c = coords[None].expand(j - i, -1, -1, -1)
+                for k in geo:
+                    e = planes_errors(imgs[k], clean, c, surf)
+                    geo[k].append({n: v.numpy() for n, v in e.items()})
             for k, img in imgs.items():
                 for name, v in _sums(img, clean, mask).items():
                     sums[k][name] = sums[k].get(name, 0.0) + v
@@ -82,12 +107,37 @@ def evaluate(model: str | Path, data: str | Path, split: str = "val", max_pairs:
     for k in ("raw", "snapped"):
         res[k]["smape_reduction"] = 1.0 - res[k]["smape"] / base
         res[k]["l1_reduction"] = 1.0 - res[k]["l1"] / res["noisy"]["l1"]
+    if planes:
+        del res["snapped"]  # nothing is snapped in the planes channel
+        for k in geo:
+            res[k]["geometry"] = _geometry(geo[k])
+        g, gn = res["raw"]["geometry"], res["noisy"]["geometry"]
+        for name in ("surface_smape", "surface_l1", "depth_err", "depth_err_median", "normal_err_deg",
+                     "normal_err_deg_median"):
+            g[name.replace("_deg", "") + "_reduction"] = 1.0 - g[name] / max(gn[name], 1e-12)
     return {"model": str(model), "data": str(data), "split": split, "noise_level": level, "pairs": pairs,
-            "pixels": pixels, "background_threshold": thr, "metrics": res,
-            "note": "masked pixel means (pixels covered in either render); smape = smape_clean_fg + smape_halo"}
+            "pixels": pixels, "background_threshold": thr, "channel": "planes" if planes else "point", "metrics": res,
+            "note": "masked pixel means (pixels covered in either render); smape = smape_clean_fg + smape_halo"
+                    + ("; geometry: over the surface pixels (covered by the clean and the noisy render), "
+                       "depths in bbox diagonals, depth_err capped at 0.05" if planes else "")}
+
+
+def _geometry(parts: list[dict]) -> dict:
+    """Summary of :func:`pix2pix.metrics.planes_errors` arrays pooled over the split."""
+    from pix2pix.metrics import DEPTH_ERROR_CAP
+
+    cat = {k: np.concatenate([p[k] for p in parts]).astype(np.float64) for k in parts[0]}
+    d = cat["depth"]
+    return {"surface_pixels": int(d.size), "surface_smape": float(cat["smape"].mean()),
+            "surface_l1": float(cat["abs"].mean() / 3.0), "depth_err": float(np.minimum(d, DEPTH_ERROR_CAP).mean()),
+            "depth_err_median": float(np.median(d)), "depth_signed_median": float(np.median(cat["depth_signed"])),
+            "depth_within_1e-3": float((d < 1e-3).mean()), "normal_err_deg": float(cat["normal_deg"].mean()),
+            "normal_err_deg_median": float(np.median(cat["normal_deg"]))}
 
 
 def markdown(r: dict) -> str:
+    if r.get("channel") == "planes":
+        return planes_markdown(r)
     m = r["metrics"]
     rows = ["| | SMAPE | on clean surface | on halo | L1 | PSNR (dB) | SMAPE reduction |",
             "|---|---|---|---|---|---|---|"]
@@ -96,6 +146,24 @@ def markdown(r: dict) -> str:
         red = m[k].get("smape_reduction")
         rows.append(f"| {label} | {m[k]['smape']:.4f} | {m[k]['smape_clean_fg']:.4f} | {m[k]['smape_halo']:.4f} | "
                     f"{m[k]['l1']:.4f} | {m[k]['psnr']:.2f} | {'' if red is None else f'{red * 100:.1f}%'} |")
+    return "\n".join(rows)
+
+
+def planes_markdown(r: dict) -> str:
+    """The geometry table of a planes model: network output against the noisy input."""
+    m = r["metrics"]
+    rows = ["| surface pixels | SMAPE | L1 | depth error, mean (capped 0.05) | median | signed median | "
+            "within 0.001 | normal error, mean (deg) | median (deg) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for k, label in (("noisy", "noisy input (identity)"), ("raw", "network output")):
+        g = m[k]["geometry"]
+        rows.append(f"| {label} | {g['surface_smape']:.4f} | {g['surface_l1']:.4f} | {g['depth_err']:.5f} | "
+                    f"{g['depth_err_median']:.5f} | {g['depth_signed_median']:+.5f} | {g['depth_within_1e-3'] * 100:.1f}% | "
+                    f"{g['normal_err_deg']:.2f} | {g['normal_err_deg_median']:.2f} |")
+    g = m["raw"]["geometry"]
+    rows.append(f"| reduction | {g['surface_smape_reduction'] * 100:.1f}% | {g['surface_l1_reduction'] * 100:.1f}% | "
+                f"{g['depth_err_reduction'] * 100:.1f}% | {g['depth_err_median_reduction'] * 100:.1f}% | | | "
+                f"{g['normal_err_reduction'] * 100:.1f}% | {g['normal_err_median_reduction'] * 100:.1f}% |")
     return "\n".join(rows)
 
 
