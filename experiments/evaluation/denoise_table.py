@@ -770,7 +770,11 @@ def plot_accuracy_vs_time(rows: list[dict], path: Path, title: str, protocol: st
                 ax.axhline(v, color="0.5", ls=style, lw=1, label=f"{kind} ({v:.3g})")
         times = [r[clock] for r in good]
         if times and min(times) > 0 and max(times) / min(times) > 20:
+            from matplotlib.ticker import NullFormatter, ScalarFormatter
+
             ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(ScalarFormatter())  # 1, 10, 100, not 10^0 ...
+            ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on short ranges
         _label_points(ax, [(r[clock], r["mean"][k], r["method"]) for r in good])
         ax.set_xlabel("mean CPU seconds per case (one thread)" if clock == "cpu_s" else "mean wall time per case (s)")
         ax.set_ylabel(f"mean {METRIC_NAMES[k]} x1e4 ({protocol} protocol)")
