@@ -415,6 +415,7 @@ def test_dss_train_cli_end_to_end(pairs_root, tmp_path):
     assert (out / "denoiser.onnx").is_file() and (out / "csv" / "metrics.csv").is_file()
 
 
+@pytest.mark.slow  # an Optuna multirun of two trainings (about 12 s): pytest -m slow
 def test_optuna_sweep_runs(pairs_root, tmp_path):
     """hparams_search=optuna with two trials of the tiny model (multirun through Hydra)."""
     out = tmp_path / "sweep"
@@ -431,6 +432,7 @@ def test_optuna_sweep_runs(pairs_root, tmp_path):
     assert sorted(p.name for p in out.iterdir() if p.is_dir() and p.name.isdigit()) == ["0", "1"]
 
 
+@pytest.mark.slow  # times every preset's training step (about 9 s): pytest -m slow
 def test_bench_train_times_every_kind_of_preset(tmp_path):
     """`python -m experiments.benchmarks.bench_train`: the paper preset (linear-decay schedule) is timed as
     well as the constant-rate CPU presets, and the JSON holds a positive images/s for each."""
