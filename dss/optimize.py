@@ -59,7 +59,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import torch
 
@@ -284,7 +284,7 @@ def occlusion_counts(out: RenderOutput) -> torch.Tensor:
 
     Counted in the order the kernels rendered in and permuted back once (an (N,) gather): the
     fragments' (V, H, W, K) indices are never mapped to the caller's order."""
-    frags, splats, _ = out._sorted
+    frags, splats, _ = out.in_render_order
     V, N = splats.packed.shape[:2]
     vis = frags.visible
     flat = frags.idx.long() + (torch.arange(V, device=frags.idx.device) * N)[:, None, None, None]
@@ -414,7 +414,8 @@ class MultiViewOptimizer:
                 if occl is None:  # only a fit needs them (its weights)
                     occl = occlusion_counts(out).detach()
                 frames = term.frames(p, self.normals.detach(), occl, self._neighbors)
-                self._frames[id(term)] = frames
+                # kept without its differences' graph (with_new_differences makes new ones)
+                self._frames[id(term)] = replace(frames, diff=frames.diff.detach())
             else:
                 frames = with_new_differences(cached, p)
             if term is self.proj:

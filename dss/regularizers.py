@@ -586,7 +586,7 @@ def with_new_differences(frames: LocalFrames, points: torch.Tensor) -> LocalFram
     """``frames`` with ``diff`` recomputed from ``points`` (N, 3) (differentiable), its weights,
     centroids and principal directions kept: the regularisers' gradient at moved points under
     frames fitted a few steps before (the weighted PCA is the costly part of a step)."""
-    if points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64) and load_cpu() is not None:
+    if _frames_kernel(points, "auto") is not None:  # the C++ difference and its scatter backward
         diff = _NeighbourDiff.apply(points, frames.idx, frames.valid)
     else:
         diff = (points.unsqueeze(1) - gather_neighbors(points, frames.idx)) * frames.valid.unsqueeze(-1).to(points.dtype)

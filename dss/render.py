@@ -141,6 +141,12 @@ class RenderOutput:
         return self._caller
 
     @property
+    def in_render_order(self) -> tuple:
+        """(fragments, splats, attributes) in the order the kernels rendered in (``point_order``;
+        the caller's order when it is None): for per-point reductions that permute back once."""
+        return self._sorted
+
+    @property
     def fragments(self) -> Fragments:
         return self._in_caller_order()[0]
 

@@ -309,8 +309,7 @@ def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: 
         raise ValueError(f"normals.output must be 'auto', 'pca' or 'optimized', got {mode!r}")
     from dss.pointcloud import estimate_normals
 
-    # each sign comes from the optimised normal, so open3d's orientation by propagation (4 s at
-    # 100K points) would be thrown away
+    # each sign comes from the optimised normal: a consistent orientation would be thrown away
     n = estimate_normals(points, k=k, orient="none")
     flip = (n * optimized).sum(dim=1, keepdim=True) < 0
     return torch.where(flip, -n, n)
