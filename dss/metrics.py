@@ -154,8 +154,6 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
     Raises FileNotFoundError / ValueError with the path for a missing, unreadable or empty file
     or for NaN/Inf coordinates.
     """
-    import open3d as o3d
-
     path = _check_file(path, _POINT_EXTS, "point cloud")
     ext = os.path.splitext(path)[1].lower()
     if ext == ".ply":
@@ -167,6 +165,8 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
             raise ValueError(str(e)) from None
         if arrays is not None:
             return as_points(arrays[0].astype(np.float64), path)
+    import open3d as o3d  # other formats and PLY layouts (its import alone takes about a second)
+
     if ext in (".obj", ".off", ".stl"):
         pts = np.asarray(o3d.io.read_triangle_mesh(path).vertices)
     else:
@@ -193,10 +193,24 @@ def _check_ply_count(path: str, n_read: int) -> None:
 
 
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Load a triangle mesh file as ``(vertices (V,3) float64, faces (F,3) int64)``."""
+    """Load a triangle mesh file as ``(vertices (V,3) float64, faces (F,3) int64)``: binary
+    triangle PLY files by :func:`dss.pointcloud.read_ply_triangles`, everything else by open3d."""
+    path = _check_file(path, _MESH_EXTS, "mesh")
+    if path.lower().endswith(".ply"):
+        from .pointcloud import PointCloudError, read_ply_triangles
+
+        try:
+            vf = read_ply_triangles(path)
+        except PointCloudError as e:
+            raise ValueError(str(e)) from None
+        if vf is not None:
+            if len(vf[0]) == 0:
+                raise ValueError(f"{path}: no vertices could be read (empty or not a valid mesh file)")
+            if len(vf[1]) == 0:
+                raise ValueError(f"{path}: has no faces; a triangle mesh is needed for point-to-mesh")
+            return as_mesh(vf, path)
     import open3d as o3d
 
-    path = _check_file(path, _MESH_EXTS, "mesh")
     m = o3d.io.read_triangle_mesh(path)
     v, f = np.asarray(m.vertices), np.asarray(m.triangles)
     _check_ply_count(path, len(v))
@@ -533,46 +547,74 @@ def evaluate(
     units; the protocol's transform from C is applied to P, C and the mesh. P2M terms need a
     mesh; ``min_triangle_area`` > 0 emulates PyTorch3D >= 0.7 (see module docstring).
     """
-    norm = compute_normalization(clean, protocol)
-    c = norm.apply(as_points(clean, "clean cloud"))
-    p = norm.apply(as_points(pred, "prediction"))
+    return evaluate_protocols(pred, clean, mesh, (protocol,), min_triangle_area)[protocol]
+
+
+def evaluate_protocols(
+    pred: Any, clean: Any, mesh: Any | None = None, protocols=PROTOCOLS, min_triangle_area: float = 0.0
+) -> dict[str, MetricsResult]:
+    """:func:`evaluate` under each of ``protocols``, from one set of nearest-point searches.
+
+    The protocols share the transform's centre (C's bounding-box centre) and differ in its
+    scale, so every distance of one protocol is a fixed multiple of the other's: the searches
+    (most of the time, and the point-to-mesh ones above all) run once, in the first protocol's
+    units, and the others' numbers are rescaled. With ``min_triangle_area`` > 0 the degenerate-
+    triangle test depends on the units, so each protocol is then computed on its own.
+    """
+    protocols = tuple(protocols)
+    if min_triangle_area > 0 and len(protocols) > 1:
+        return {pr: evaluate_protocols(pred, clean, mesh, (pr,), min_triangle_area)[pr] for pr in protocols}
+    norms = {pr: compute_normalization(clean, pr) for pr in protocols}
+    first = norms[protocols[0]]
+    c = first.apply(as_points(clean, "clean cloud"))
+    p = first.apply(as_points(pred, "prediction"))
 
     d_pc = nn_distances(p, c)
     d_cp = nn_distances(c, p)
-    cd_pc, cd_cp = float(np.mean(d_pc**2)), float(np.mean(d_cp**2))
-    hd_pc, hd_cp = float(d_pc.max()), float(d_cp.max())
-    f = SCALE_FACTORS
-    res = MetricsResult(
-        protocol=protocol,
-        n_pred=len(p),
-        n_gt=len(c),
-        chamfer=(cd_pc + cd_cp) * f["chamfer"],
-        chamfer_pred_to_gt=cd_pc * f["chamfer"],
-        chamfer_gt_to_pred=cd_cp * f["chamfer"],
-        hausdorff=max(hd_pc, hd_cp) * f["hausdorff"],
-        hausdorff_pred_to_gt=hd_pc * f["hausdorff"],
-        hausdorff_gt_to_pred=hd_cp * f["hausdorff"],
-        hausdorff_dss_script=(hd_pc**2 + hd_cp**2) * f["hausdorff_dss_script"],
-        min_triangle_area=float(min_triangle_area),
-        normalization=asdict(norm),
-    )
+    raw = {"cd_pc": float(np.mean(d_pc**2)), "cd_cp": float(np.mean(d_cp**2)),
+           "hd_pc": float(d_pc.max()), "hd_cp": float(d_cp.max())}
+    n_faces = None
     if mesh is not None:
         v, fc = as_mesh(mesh)
-        v = norm.apply(v)
-        p2f = float(np.mean(point_to_mesh_sq(p, v, fc, min_triangle_area)))
-        f2p = float(np.mean(mesh_to_point_sq(p, v, fc, min_triangle_area)))
-        res.point_to_mesh = p2f * f["point_to_mesh"]
-        res.mesh_to_point = f2p * f["mesh_to_point"]
-        res.p2m = (p2f + f2p) * f["p2m"]
-        res.n_faces = len(fc)
-    return res
+        v = first.apply(v)
+        raw["p2f"] = float(np.mean(point_to_mesh_sq(p, v, fc, min_triangle_area)))
+        raw["f2p"] = float(np.mean(mesh_to_point_sq(p, v, fc, min_triangle_area)))
+        n_faces = len(fc)
+    f = SCALE_FACTORS
+    out = {}
+    for pr, norm in norms.items():
+        r = norm.scale / first.scale  # lengths in this protocol's units per first-protocol unit
+        cd_pc, cd_cp = raw["cd_pc"] * r * r, raw["cd_cp"] * r * r
+        hd_pc, hd_cp = raw["hd_pc"] * r, raw["hd_cp"] * r
+        res = MetricsResult(
+            protocol=pr,
+            n_pred=len(p),
+            n_gt=len(c),
+            chamfer=(cd_pc + cd_cp) * f["chamfer"],
+            chamfer_pred_to_gt=cd_pc * f["chamfer"],
+            chamfer_gt_to_pred=cd_cp * f["chamfer"],
+            hausdorff=max(hd_pc, hd_cp) * f["hausdorff"],
+            hausdorff_pred_to_gt=hd_pc * f["hausdorff"],
+            hausdorff_gt_to_pred=hd_cp * f["hausdorff"],
+            hausdorff_dss_script=(hd_pc**2 + hd_cp**2) * f["hausdorff_dss_script"],
+            min_triangle_area=float(min_triangle_area),
+            normalization=asdict(norm),
+        )
+        if n_faces is not None:
+            p2f, f2p = raw["p2f"] * r * r, raw["f2p"] * r * r
+            res.point_to_mesh = p2f * f["point_to_mesh"]
+            res.mesh_to_point = f2p * f["mesh_to_point"]
+            res.p2m = (p2f + f2p) * f["p2m"]
+            res.n_faces = n_faces
+        out[pr] = res
+    return out
 
 
 def evaluate_all(
     pred: Any, clean: Any, mesh: Any | None = None, protocols=PROTOCOLS, **kwargs
 ) -> dict[str, dict]:
     """``{protocol: MetricsResult.to_dict()}`` for each protocol (JSON-ready)."""
-    return {pr: evaluate(pred, clean, mesh, pr, **kwargs).to_dict() for pr in protocols}
+    return {pr: r.to_dict() for pr, r in evaluate_protocols(pred, clean, mesh, protocols, **kwargs).items()}
 
 
 def sample_poisson_disk(mesh: Any, n: int, seed: int = 0) -> np.ndarray:
@@ -603,4 +645,4 @@ def chamfer_floors(
     ~0.6 s each at 20K points, do not depend on the protocol)."""
     c = sample_poisson_disk(mesh, n, seed)
     p = sample_poisson_disk(mesh, n, seed + 1)
-    return {pr: evaluate(p, c, mesh if with_mesh else None, pr) for pr in protocols}
+    return evaluate_protocols(p, c, mesh if with_mesh else None, protocols)

@@ -253,6 +253,60 @@ def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray] | None:
     return {n: data[n] for n in names}
 
 
+def read_ply_triangles(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """A triangle mesh from a binary PLY file as ``(vertices (V, 3) float64, faces (F, 3) int64)``
+    without open3d (whose import alone costs more than a 20K-point job's metrics).
+
+    Covers binary files whose elements up to the faces have scalar properties only, and whose
+    face element has one list property (``vertex_indices`` or ``vertex_index``) of triangles,
+    other face properties scalar (colours, flags). Returns None for anything else (ASCII,
+    polygons other than triangles, other list properties, a short file): :func:`dss.metrics.load_mesh`
+    then uses open3d.
+    """
+    path = Path(path)
+    header = read_ply_header(path)
+    if header.format == "ascii":
+        return None
+    endian = "<" if header.format == "binary_little_endian" else ">"
+    cols = read_ply_vertices(path)
+    if cols is None or not all(n in cols for n in ("x", "y", "z")):
+        return None
+    offset = header.size
+    face = None
+    for e in header.elements:
+        if e.name == "face":
+            face = e
+            break
+        dt = _fixed_dtype(e, endian)
+        if dt is None:
+            return None
+        offset += e.count * dt.itemsize
+    if face is None:
+        return None
+    fields, index_name = [], None
+    for name, t in face.properties:
+        if isinstance(t, tuple):
+            if index_name is not None or name not in ("vertex_indices", "vertex_index"):
+                return None
+            index_name = name
+            # every face a triangle: the list is then a fixed (count, 3 indices) record
+            fields += [("_count", endian + t[1]), (name, endian + t[2], (3,))]
+        else:
+            fields.append((name, endian + t))
+    if index_name is None:
+        return None
+    dt = np.dtype(fields)
+    available = max(0, path.stat().st_size - offset)
+    if available < face.count * dt.itemsize:
+        return None  # polygons with fewer corners, or a truncated file: open3d's reader decides
+    data = np.fromfile(path, dtype=dt, count=face.count, offset=offset)
+    if not (data["_count"] == 3).all():
+        return None  # not all triangles (the records are then misaligned): open3d reads polygons
+    vertices = np.stack([np.asarray(cols[n], np.float64) for n in ("x", "y", "z")], 1)
+    faces = data[index_name].astype(np.int64)
+    return vertices, faces
+
+
 def _columns(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray | None:
     if not all(n in cols for n in names):
         return None

@@ -299,8 +299,9 @@ def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
 
     out = tmp_path / "run"
     m = run(compose_cfg("denoise", denoise_overrides(
+        # the paper's schedule (a point step on the image term) at the paper's point rate
         case, out, "reference=onnx", f"reference.model={tiny_onnx}", "reference.threads=1",
-        "optimizer.cycles=2", "optimizer.point_steps=1", "image_size=null")))
+        "optimizer.cycles=2", "optimizer.point_steps=1", "optimizer.lr_points=5.0", "image_size=null")))
     assert m["render"]["source"] == "model"
     assert m["render"]["image_size"] == [48, 48]  # from the model file, not conf/render/pairs.yaml (128)
     assert m["render"]["spec"]["fov_deg"] == 35.0 and m["render"]["spec"]["light"]["ambient"] == 0.25
@@ -534,20 +535,25 @@ def test_budget_presets_set_views_and_scale_auto_cycles():
     def cfg(**kw):
         return OmegaConf.create({"views": None, "budget": "auto", "budget_fast_above": 1000,
                                  "budgets": {"default": {"views": 12, "cycles_scale": 1.0, "filter_image_size": 64},
-                                             "fast": {"views": 4, "cycles_scale": 0.5, "fusion_passes": 2,
-                                                      "planes_image_size": 192}},
-                                 "image_size": None, "optimizer": {"cycles": 16}, "fusion": {"passes": None}, **kw})
+                                             "fast": {"views": 4, "cycles_scale": 0.5, "lr_points_scale": 2.0,
+                                                      "fusion_passes": 2, "planes_image_size": 192}},
+                                 "image_size": None, "optimizer": {"cycles": 16, "lr_points": 15.0},
+                                 "fusion": {"passes": None}, **kw})
 
     auto = {"setting": "auto", "used": 16}
+    lr_auto = {"setting": "auto", "used": 15.0}
     c = cfg()
-    note = resolve_budget(c, 1000, auto)
-    assert note["used"] == "default" and c.views == 12 and c.optimizer.cycles == 16
+    note = resolve_budget(c, 1000, auto, lr_auto)
+    assert note["used"] == "default" and c.views == 12 and c.optimizer.cycles == 16 and c.optimizer.lr_points == 15
     assert note["filter_image_size"] == 64  # the filters' render size; a given image_size wins
     assert "filter_image_size" not in resolve_budget(cfg(image_size=128), 1000, auto)
     c = cfg()
-    note = resolve_budget(c, 1001, auto)
-    assert note["used"] == "fast" and c.views == 4 and c.optimizer.cycles == 8
+    note = resolve_budget(c, 1001, auto, lr_auto)  # half the cycles, twice the point rate
+    assert note["used"] == "fast" and c.views == 4 and c.optimizer.cycles == 8 and c.optimizer.lr_points == 30
     assert c.fusion.passes == 2 and note["planes_image_size"] == 192
+    c = cfg()  # a given point rate is kept
+    resolve_budget(c, 1001, auto, {"setting": 15.0, "used": 15.0})
+    assert c.optimizer.lr_points == 15
     assert cfg().fusion.passes is None and resolve_budget(c := cfg(), 10, auto) and c.fusion.passes == 4
     c = cfg(fusion={"passes": 3}, image_size=128)  # a given fusion.passes and image_size win
     note = resolve_budget(c, 1001, auto)
