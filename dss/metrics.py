@@ -327,6 +327,59 @@ def _segment_min(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.nd
     return out
 
 
+def _closest_triangles_exact(points: np.ndarray, tv: np.ndarray, k: int = 8, chunk: int = 16384):
+    """(squared distance (K,), index (K,)) of each point's closest triangle of tv (F,3,3), with
+    scipy only: the ``k`` triangles of nearest centroid bound the distance, then every triangle
+    that could beat the bound (centroid within it plus the triangle's radius, bucketed by radius
+    as in :func:`_refine_point_to_triangles`) is tested exactly. Slower than open3d's BVH
+    (about 1 s vs 0.1 s at 20K points and 45K triangles) and used where open3d is missing."""
+    centroids = tv.mean(axis=1)
+    k = int(min(k, len(tv)))
+    _, knn = cKDTree(centroids).query(points, k=k, workers=-1)
+    knn = knn.reshape(len(points), k)
+    qi, ti = np.repeat(np.arange(len(points)), k), knn.reshape(-1)
+    d = point_triangle_sq(points[qi], tv[ti, 0], tv[ti, 1], tv[ti, 2]).reshape(len(points), k)
+    j = d.argmin(1)
+    best, arg = d[np.arange(len(points)), j], knn[np.arange(len(points)), j]
+    radii = np.sqrt(((tv - centroids[:, None, :]) ** 2).sum(-1).max(axis=1))
+    rmax = max(float(radii.max()), 1e-300)
+    bucket = np.floor(np.log2(np.maximum(radii, rmax * 1e-6) / rmax)).astype(np.int64)
+    for b in np.unique(bucket):
+        idx = np.nonzero(bucket == b)[0]
+        tree = cKDTree(centroids[idx])
+        rb = float(radii[idx].max())
+        for s in range(0, len(points), chunk):
+            q = points[s : s + chunk]
+            rad = (np.sqrt(best[s : s + chunk]) + rb) * (1 + 1e-9) + 1e-12
+            cand = tree.query_ball_point(q, rad, workers=-1, return_sorted=False)
+            lens = np.fromiter((len(c) for c in cand), dtype=np.int64, count=len(cand))
+            if lens.sum() == 0:
+                continue
+            qi = np.repeat(np.arange(len(q)), lens)
+            ti = idx[np.concatenate([np.asarray(c, dtype=np.int64) for c in cand if len(c)])]
+            d = point_triangle_sq(q[qi], tv[ti, 0], tv[ti, 1], tv[ti, 2])
+            m = _segment_min(d, qi, len(q))
+            better = m < best[s : s + chunk]
+            hit = (d == m[qi]) & better[qi]
+            first_q, first = np.unique(qi[hit], return_index=True)
+            best[s + first_q] = m[first_q]
+            arg[s + first_q] = ti[hit][first]
+    return best, arg
+
+
+def _closest_triangle_ids(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Index (K,) of each point's closest triangle: open3d's RaycastingScene (a float32 BVH) when
+    open3d is installed, else :func:`_closest_triangles_exact` (scipy)."""
+    try:
+        import open3d as o3d
+    except ImportError:
+        return _closest_triangles_exact(points, vertices[faces])[1]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    ans = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
+    return ans["primitive_ids"].numpy().astype(np.int64)
+
+
 def point_to_mesh_sq(
     points: np.ndarray,
     vertices: np.ndarray,
@@ -335,19 +388,12 @@ def point_to_mesh_sq(
 ) -> np.ndarray:
     """Squared distance (K,) from each point to the nearest triangle of the mesh.
 
-    open3d's RaycastingScene (float32 BVH) finds the closest triangle; its distance is then
-    recomputed exactly in float64. With ``min_triangle_area > 0`` (PyTorch3D emulation), the
-    RaycastingScene answer is only an upper bound, and all triangles whose centroid lies within
-    that bound plus their radius are checked (slower).
+    The closest triangle comes from :func:`_closest_triangle_ids` (open3d's BVH, or an exact
+    scipy search without open3d); its distance is then recomputed exactly in float64. With
+    ``min_triangle_area > 0`` (PyTorch3D emulation), that answer is only an upper bound, and all
+    triangles whose centroid lies within that bound plus their radius are checked (slower).
     """
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
-    )
-    ans = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
-    tri = ans["primitive_ids"].numpy().astype(np.int64)
+    tri = _closest_triangle_ids(points, vertices, faces)
     tv = vertices[faces]  # (F,3,3)
     d2 = point_triangle_sq(points, tv[tri, 0], tv[tri, 1], tv[tri, 2], min_triangle_area)
     if min_triangle_area <= 0:
@@ -358,15 +404,11 @@ def point_to_mesh_sq(
 
 
 def mesh_normals_at(points: Any, mesh: Any) -> np.ndarray:
-    """Unit normal (K, 3) float64 of the mesh triangle closest to each point (open3d
-    RaycastingScene), with the sign of the triangle's winding."""
-    import open3d as o3d
-
+    """Unit normal (K, 3) float64 of the mesh triangle closest to each point
+    (:func:`_closest_triangle_ids`), with the sign of the triangle's winding."""
     p = as_points(points)
     vertices, faces = as_mesh(mesh)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    tri = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["primitive_ids"].numpy().astype(np.int64)
+    tri = _closest_triangle_ids(p, vertices, faces)
     tv = vertices[faces[tri]]
     fn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
     return fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
@@ -374,7 +416,7 @@ def mesh_normals_at(points: Any, mesh: Any) -> np.ndarray:
 
 def normal_error_deg(points: Any, normals: Any, mesh: Any) -> dict:
     """Unoriented angle (degrees) between each normal and the normal of the mesh triangle
-    closest to its point (open3d RaycastingScene): ``{"mean", "median", "p90"}``.
+    closest to its point (:func:`mesh_normals_at`): ``{"mean", "median", "p90"}``.
 
     Args:
         points, normals: (K, 3) in the mesh's frame (normals need not be unit length).

@@ -687,8 +687,9 @@ def test_denoise_is_scale_free(case, tmp_path):
 
 def test_denoise_runs_where_open3d_is_missing(tmp_path):
     """A bare GPU node or container may have only torch, numpy, scipy, hydra and onnxruntime: the
-    job without ground truth (load, normals, outliers, DSS, fusion, write, figures) must not
-    import open3d. A sitecustomize on PYTHONPATH makes ``import open3d`` fail in the child."""
+    job (load, normals, outliers, DSS, fusion, write, figures, and the metrics against a clean
+    cloud and a binary triangle-PLY mesh) must not need open3d. A sitecustomize on PYTHONPATH makes ``import open3d``
+    fail in the child."""
     import os
     import subprocess
     import sys
@@ -703,17 +704,34 @@ def test_denoise_runs_where_open3d_is_missing(tmp_path):
     rng = np.random.default_rng(0)
     v = rng.normal(size=(1500, 3))
     v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    save_ply(tmp_path / "clean.ply", PointCloud(torch.from_numpy(v.astype(np.float32))))
     v = v + rng.normal(scale=0.02, size=v.shape)
     save_ply(tmp_path / "in.ply", PointCloud(torch.from_numpy(v.astype(np.float32))))
+    from scipy.spatial import ConvexHull
+
+    sphere = rng.normal(size=(400, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    faces = ConvexHull(sphere).simplices
+    records = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    records["n"], records["i"] = 3, faces
+    (tmp_path / "mesh.ply").write_bytes(
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(sphere)}\nproperty float x\nproperty float y\n"
+        f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n".encode()
+        + sphere.astype("<f4").tobytes() + records.tobytes())
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]),
            "OMP_NUM_THREADS": "1"}
     code = ("from experiments.apps.denoise import main; import sys; sys.argv = ['dss-denoise', *sys.argv[1:]]; main()")
     proc = subprocess.run(
-        [sys.executable, "-c", code, str(tmp_path / "in.ply"), "reference=identity", "noise=0.01",
-         "optimizer.cycles=1", "optimizer.normal_steps=2", "fusion.passes=1", "image_size=64",
+        [sys.executable, "-c", code, str(tmp_path / "in.ply"), f"mesh={tmp_path / 'mesh.ply'}",
+         f"clean={tmp_path / 'clean.ply'}", "reference=identity",
+         "noise=0.01", "optimizer.cycles=1", "optimizer.normal_steps=2", "fusion.passes=1", "image_size=64",
          "figures.image_size=32", "progress=false", "threads=1", f"hydra.run.dir={tmp_path / 'run'}"],
         env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "run" / "denoised.ply").is_file() and (tmp_path / "run" / "before_after.png").is_file()
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    out = m["summary"]["output"]["paper"]
+    assert 0 < out["p2m"] < m["summary"]["input"]["paper"]["p2m"]  # point-to-mesh without open3d
+    assert 0 < m["normal_error_deg"]["output"]["mean"] < 30
     probe = subprocess.run([sys.executable, "-c", "import open3d"], env=env, capture_output=True, text=True)
     assert probe.returncode != 0 and "blocked" in probe.stderr  # the block itself works

@@ -303,3 +303,37 @@ def test_ply_triangles_read_without_open3d_as_open3d_reads_them(tmp_path):
         ref = o3d.io.read_triangle_mesh(SHARED_MESH)
         np.testing.assert_allclose(ours[0], np.asarray(ref.vertices), rtol=1e-6)
         np.testing.assert_array_equal(ours[1], np.asarray(ref.triangles))
+
+
+def test_closest_triangles_without_open3d_are_exact(monkeypatch):
+    """The scipy search used where open3d is missing finds each point's closest triangle (brute
+    force), and point-to-mesh and mesh normals then equal open3d's answers."""
+    import builtins
+
+    rng = np.random.default_rng(4)
+    verts = rng.normal(size=(40, 3))
+    faces = np.array([rng.choice(40, 3, replace=False) for _ in range(90)])
+    pts = rng.normal(size=(300, 3)) * 1.2
+    tv = verts[faces]
+    P, T = np.repeat(pts, len(faces), 0), np.tile(tv, (len(pts), 1, 1))
+    D = M.point_triangle_sq(P, T[:, 0], T[:, 1], T[:, 2]).reshape(len(pts), len(faces))
+    d2, tri = M._closest_triangles_exact(pts, tv, k=2, chunk=37)
+    np.testing.assert_allclose(d2, D.min(1), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(D[np.arange(len(pts)), tri], D.min(1), rtol=1e-12, atol=1e-15)
+    with_o3d = (M.point_to_mesh_sq(pts, verts, faces), M.mesh_normals_at(pts, (verts, faces)))
+    real_import = builtins.__import__
+
+    def no_open3d(name, *args, **kwargs):
+        if name == "open3d" or name.startswith("open3d."):
+            raise ImportError("open3d blocked by the test")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_open3d)
+    np.testing.assert_allclose(M.point_to_mesh_sq(pts, verts, faces), with_o3d[0], rtol=1e-6, atol=1e-9)
+    # the normal is one of a closest triangle's (a point nearest a shared edge or vertex ties)
+    got = M.mesh_normals_at(pts, (verts, faces))
+    fn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    closest = D <= D.min(1, keepdims=True) * (1 + 1e-9) + 1e-15
+    assert all((fn[closest[i]] @ got[i]).max() > 1 - 1e-9 for i in range(len(pts)))
+    assert (np.abs((got * with_o3d[1]).sum(1)) > 1 - 1e-6).mean() > 0.9
