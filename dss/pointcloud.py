@@ -461,11 +461,9 @@ def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.T
     Returns:
         (N, 3) float32 unit normals on the device of ``points`` when it is a tensor.
 
-    numpy and scipy only (no open3d): the job runs where open3d is not installed, and at 20K
-    points this takes about 0.1 s where open3d's tangent-plane propagation took 3.5 s.
+    No open3d (the job runs where it is not installed): at 20K points this takes about 0.1 s
+    where open3d's tangent-plane propagation took 3.5 s.
     """
-    from scipy.spatial import cKDTree
-
     if orient not in ("consistent", "outward", "none"):
         raise ValueError(f"orient must be 'consistent', 'outward' or 'none', got {orient!r}")
     device = points.device if isinstance(points, torch.Tensor) else torch.device("cpu")
@@ -476,12 +474,17 @@ def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.T
     # in units of the bounding-box diagonal: the normals do not depend on the scale
     diag = float(np.linalg.norm(p.max(0) - p.min(0)))
     unit = (p - p.mean(0)) / (diag if diag > 0 else 1.0)
-    _, idx = cKDTree(unit).query(unit, k=k)
-    nb = unit[idx]  # (N, k, 3), the point itself first
-    centred = nb - nb.mean(1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred)
-    _, evecs = np.linalg.eigh(cov)  # ascending: the normal is the first eigenvector
-    n = np.ascontiguousarray(evecs[:, :, 0])
+    # the grid kNN of dss.knn (C++, float32 distances) takes a third of cKDTree's time at 100K
+    # points; the point itself is put first, and the fit itself is float64
+    from .knn import knn
+
+    others = knn(torch.from_numpy(unit.astype(np.float32)), k - 1, exclude_self=True).idx.numpy()
+    idx = np.concatenate([np.arange(len(unit))[:, None], others], 1)
+    nb = torch.from_numpy(unit)[torch.from_numpy(idx)]  # (N, k, 3), the point itself first
+    centred = nb - nb.mean(1, keepdim=True)
+    cov = centred.transpose(1, 2) @ centred
+    _, evecs = torch.linalg.eigh(cov)  # ascending: the normal is the first eigenvector
+    n = np.ascontiguousarray(evecs[:, :, 0].numpy())
     if orient == "consistent":
         n = orient_normals_consistent(unit, n, idx)
     elif orient == "outward":
