@@ -14,8 +14,8 @@ much sparser than the surface removed, ``outliers`` in ``conf/denoise.yaml``, an
 *input* is rendered with the denoiser's training render setting (the model file's metadata, or
 ``conf/render/pairs.yaml`` at the budget's 64 px for the filters), the renders are mapped through the reference
 generator (``conf/reference``), and DSS optimises normals to match them (the paper's local
-schedule, T_n = 19 normal steps per cycle; up to 16 cycles, ``cycles_by_noise`` for ``auto``) while
-the projection term moves the
+schedule, T_n = 19 normal steps per cycle; ``cycles_by_noise`` and ``lr_points_by_noise`` for
+``auto``: 4 cycles at 3x the paper's point rate at 1% noise) while the projection term moves the
 points onto the planes of the corrected normals. The paper's T_p = 1 image-driven point step
 per cycle is ``optimizer.point_steps=1``: with learned references it made the result worse
 (measurements in ``conf/denoise.yaml``). Writes into the run directory: ``config.yaml``, the denoised PLY (input units),
