@@ -67,6 +67,7 @@ from .cameras import Cameras
 from .gc_pause import frozen_gc
 from .hull import fill_displacement, hull_displacement, nearest_covered
 from .losses import l1_loss, smape_loss
+from .orientation import orient_to_views
 from .pointcloud import all_finite
 from .regularizers import (
     ProjectionLoss,
@@ -184,6 +185,10 @@ class OptimizerConfig:
     grad_smoothing: int = 0  # passes of neighbour averaging of the image gradient on the points
     normal_refresh: str = "none"  # "none" | "pca": re-fit normals to the points at each cycle start
     normal_refresh_k: int = 16
+    # the sign of a re-fitted normal (normal_refresh): "current", that of the normal it replaces;
+    # "views", toward the cycle's cameras that see its point (dss.orientation; a point no view
+    # sees keeps the current sign). An addition to the paper, like the re-fit itself.
+    normal_orientation: str = "current"
     # divergence guard (module docstring): a step that grows the cloud's extent beyond
     # blowup_extent x its start's, or the image loss beyond blowup_loss x its cycle's first, is
     # undone and the rates halved; 0 turns a test off. After max_lr_halvings: OptimizationDiverged.
@@ -215,6 +220,8 @@ class OptimizerConfig:
             raise ValueError(f"point_motion must be 'free', 'normal' or 'pca', got {self.point_motion!r}")
         if self.normal_refresh not in ("none", "pca"):
             raise ValueError(f"normal_refresh must be 'none' or 'pca', got {self.normal_refresh!r}")
+        if self.normal_orientation not in ("current", "views"):
+            raise ValueError(f"normal_orientation must be 'current' or 'views', got {self.normal_orientation!r}")
         if self.views <= 0:
             raise ValueError(f"views per step must be positive, got {self.views}")
         for name in ("lr_points", "lr_normals", "silhouette_weight", "hull_step", "fill_step"):
@@ -557,16 +564,17 @@ class MultiViewOptimizer:
         log.warning("%s: step rejected, learning rates halved (x%.3g of the configured ones)", why, self.lr_scale)
         self._make_optimizers()
 
-    def _refresh_neighbourhoods(self):
+    def _refresh_neighbourhoods(self, cams: Cameras | None = None):
         """Once per cycle: kNN lists for the regularisers and the splat sizes (points move little
-        within a cycle; the regularisers re-apply their bandwidth masks every step)."""
+        within a cycle; the regularisers re-apply their bandwidth masks every step), and the
+        normal re-fit (``normal_refresh``; signed by ``cams`` with ``normal_orientation="views"``)."""
         p = self.points.detach()
-        if self.cfg.normal_refresh == "pca":
-            self._refit_normals(p)
-        self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
-        self._frames, self._frames_age = {}, 0  # new neighbour lists: fit anew
         s = self.settings
         self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
+        if self.cfg.normal_refresh == "pca":
+            self._refit_normals(p, cams)
+        self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
+        self._frames, self._frames_age = {}, 0  # new neighbour lists: fit anew
 
     def _bold_driver(self, worse: bool):
         """Halve the point learning rate after a point step that raised the image loss (and drop
@@ -596,8 +604,10 @@ class MultiViewOptimizer:
             g = s / (ok.sum(1) + 1)
         return g
 
-    def _refit_normals(self, p: torch.Tensor):
-        """Normals := PCA normals of the current points, signed to agree with the current normals.
+    def _refit_normals(self, p: torch.Tensor, cams: Cameras | None = None):
+        """Normals := PCA normals of the current points, signed to agree with the current normals
+        (``normal_orientation="current"``) or to face the views in ``cams`` that see their points
+        (``"views"``, :func:`dss.orientation.orient_to_views`; unseen points: the current sign).
 
         Large deformations move points far in a few cycles, and the image gradient of the
         normals (a colour match per pixel) does not keep up: measured on sphere -> teapot, the
@@ -608,9 +618,14 @@ class MultiViewOptimizer:
         from .pointcloud import estimate_normals
 
         n = estimate_normals(p, k=self.cfg.normal_refresh_k, orient="none").to(p.device)
-        sign = torch.where((n * self.normals.detach()).sum(1, keepdim=True) < 0, -1.0, 1.0)
+        if self.cfg.normal_orientation == "views" and cams is not None:
+            n, unseen = orient_to_views(p, n, cams, self.settings, fallback=self.normals.detach(),
+                                        backend=self.backend, sigma=self._sigma)
+            self.history.setdefault("unseen_fraction", []).append(float(unseen.float().mean()))
+        else:
+            n = n * torch.where((n * self.normals.detach()).sum(1, keepdim=True) < 0, -1.0, 1.0)
         with torch.no_grad():
-            self.normals.copy_(n * sign)
+            self.normals.copy_(n)
         # momentum of the old normals is meaningless for the new ones
         self.opt_n.state.clear()
 
@@ -665,7 +680,7 @@ class MultiViewOptimizer:
                 target = self.reference(cams).detach()
             self._cycle_decay = c.lr_decay ** cycle
             with self.clock("neighbourhoods"):
-                self._refresh_neighbourhoods()
+                self._refresh_neighbourhoods(cams)
             if cycle > 0 and c.lr_decay != 1.0:
                 for opt in (self.opt_p, self.opt_n):
                     for group in opt.param_groups:
