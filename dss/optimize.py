@@ -128,6 +128,11 @@ class OptimizerConfig:
     # fraction of the way to its silhouette (dss.hull: a visual-hull pull that tears membranes
     # across holes, where the visibility gradient is zero). 0: the paper.
     hull_step: float = 0.0
+    # > 0 (with hull_step > 0): the hull pull also tests this many more views per cycle, sampled
+    # like the step's (their references are rendered once per cycle for their silhouettes only;
+    # no image loss). A point outside the visual hull in a view the cycle does not render is
+    # otherwise left there until a later cycle's views happen to include one that shows it.
+    hull_views: int = 0
     # > 0: after every point step, each reference pixel the render leaves empty pulls the nearest
     # projected point this fraction of the way to it (dss.hull.fill_displacement), times
     # lr_decay^cycle like the learning rates (thin parts form early, the surface then settles).
@@ -229,7 +234,7 @@ class OptimizerConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if int(self.frames_every) != self.frames_every or self.frames_every < 1:
             raise ValueError(f"frames_every must be a positive integer, got {self.frames_every}")
-        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles"):
+        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles", "hull_views"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.cycles + self.error_aware_cycles == 0 or self.normal_steps + self.point_steps == 0:
@@ -346,6 +351,13 @@ class MultiViewOptimizer:
             radius = float((p - torch.tensor(center)).norm(dim=1).max())
         self.sampler = sampler or SphereViewSampler(tuple(center), radius, self.cfg.views, image_size,
                                                     self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed)
+        # the hull pull's extra views (hull_views): their own generator, so the step's views are
+        # the same with and without them
+        self._hull_sampler = None
+        if self.cfg.hull_views > 0 and self.cfg.hull_step > 0:
+            self._hull_sampler = SphereViewSampler(tuple(center), radius, self.cfg.hull_views, image_size,
+                                                   self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed + 7919)
+        self._hull_extra: tuple[Cameras, torch.Tensor, torch.Tensor] | None = None
         self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k,
                                    projection_mode=self.cfg.projection_mode, cutoff=self.cfg.reg_cutoff,
                                    min_neighbors=self.cfg.reg_min_neighbors)
@@ -531,7 +543,10 @@ class MultiViewOptimizer:
         with torch.no_grad():
             self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
             if image_moves_points and self.cfg.hull_step > 0:
-                d, _ = hull_displacement(self.points, cams, *self._coverage(target, nearest=True))
+                d, n_out = hull_displacement(self.points, cams, *self._coverage(target, nearest=True))
+                if self._hull_extra is not None:  # averaged over the violated views of both sets
+                    d2, n2 = hull_displacement(self.points, *self._hull_extra)
+                    d = (d * n_out[:, None] + d2 * n2[:, None]) / (n_out + n2).clamp_min(1)[:, None].to(d.dtype)
                 self.points.add_(self.cfg.hull_step * d)
             if image_moves_points and self.cfg.fill_step > 0:
                 d, _ = fill_displacement(self.points, cams, self._coverage(target), out.mask)
@@ -575,6 +590,15 @@ class MultiViewOptimizer:
             self._refit_normals(p, cams)
         self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
         self._frames, self._frames_age = {}, 0  # new neighbour lists: fit anew
+
+    def _hull_views(self) -> tuple[Cameras, torch.Tensor, torch.Tensor]:
+        """The cycle's extra silhouette views (``hull_views``): cameras, reference coverage
+        (V, H, W) and its nearest covered pixels (:func:`dss.hull.nearest_covered`)."""
+        cams = self._hull_sampler.sample().to(self.points.device)
+        ref = self.reference(cams).detach()
+        bg = torch.as_tensor(self.settings.background, dtype=ref.dtype, device=ref.device).flatten()
+        mask = (ref - bg).abs().amax(-1) > 1e-6
+        return cams, mask, nearest_covered(mask)
 
     def _bold_driver(self, worse: bool):
         """Halve the point learning rate after a point step that raised the image loss (and drop
@@ -678,6 +702,8 @@ class MultiViewOptimizer:
                     cams = self.sampler.sample().to(self.points.device)
             with torch.no_grad(), self.clock("references"):
                 target = self.reference(cams).detach()
+                if self._hull_sampler is not None:
+                    self._hull_extra = self._hull_views()
             self._cycle_decay = c.lr_decay ** cycle
             with self.clock("neighbourhoods"):
                 self._refresh_neighbourhoods(cams)
