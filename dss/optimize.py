@@ -194,6 +194,10 @@ class OptimizerConfig:
     # "views", toward the cycle's cameras that see its point (dss.orientation; a point no view
     # sees keeps the current sign). An addition to the paper, like the re-fit itself.
     normal_orientation: str = "current"
+    # with normal_refresh: re-fit the normals once more after the last cycle (and the final
+    # projection), signed as at a cycle start with the last cycle's views. The point steps of the
+    # last cycle move the points after its normal steps; the output's normals follow them.
+    final_normal_refresh: bool = False
     # divergence guard (module docstring): a step that grows the cloud's extent beyond
     # blowup_extent x its start's, or the image loss beyond blowup_loss x its cycle's first, is
     # undone and the rates halved; 0 turns a test off. After max_lr_halvings: OptimizationDiverged.
@@ -358,6 +362,7 @@ class MultiViewOptimizer:
             self._hull_sampler = SphereViewSampler(tuple(center), radius, self.cfg.hull_views, image_size,
                                                    self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed + 7919)
         self._hull_extra: tuple[Cameras, torch.Tensor, torch.Tensor] | None = None
+        self._last_cams: Cameras | None = None  # the last cycle's views (final_normal_refresh)
         self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k,
                                    projection_mode=self.cfg.projection_mode, cutoff=self.cfg.reg_cutoff,
                                    min_neighbors=self.cfg.reg_min_neighbors)
@@ -677,6 +682,7 @@ class MultiViewOptimizer:
         if final_projection:
             with torch.no_grad():
                 self.points.copy_(self.project_outliers(self.points.detach()))
+            self.refit_final_normals()
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
         # the rest of each step: loss, optimiser updates, clipping, the divergence guard, callbacks
@@ -700,6 +706,7 @@ class MultiViewOptimizer:
                     cams = self._error_aware(cams, gen)
                 else:  # on the points' device: the renders and the reference see one device
                     cams = self.sampler.sample().to(self.points.device)
+            self._last_cams = cams
             with torch.no_grad(), self.clock("references"):
                 target = self.reference(cams).detach()
                 if self._hull_sampler is not None:
@@ -747,6 +754,17 @@ class MultiViewOptimizer:
                 if progress is not None:
                     progress(step, loss)
         return step
+
+    def refit_final_normals(self) -> None:
+        """The configured final normal re-fit (``final_normal_refresh`` with ``normal_refresh``):
+        the normals re-fitted to the current points as at a cycle start, signed with the last
+        cycle's views; nothing when it is off (a caller that defers the final projection calls
+        this after it)."""
+        if self.cfg.final_normal_refresh and self.cfg.normal_refresh != "none":
+            p = self.points.detach()
+            s = self.settings
+            self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
+            self._refit_normals(p, self._last_cams)
 
     def project_outliers(self, points: torch.Tensor) -> torch.Tensor:
         """The configured final projection (``final_projection_k`` > 0) of ``points`` (N, 3):
