@@ -194,10 +194,11 @@ class OptimizerConfig:
     # "views", toward the cycle's cameras that see its point (dss.orientation; a point no view
     # sees keeps the current sign). An addition to the paper, like the re-fit itself.
     normal_orientation: str = "current"
-    # with normal_refresh: re-fit the normals once more after the last cycle (and the final
-    # projection), signed as at a cycle start with the last cycle's views. The point steps of the
-    # last cycle move the points after its normal steps; the output's normals follow them.
-    final_normal_refresh: bool = False
+    # > 0 (with normal_refresh): re-fit the normals once more after the last cycle (and the final
+    # projection) over this many neighbours, signed as at a cycle start with the last cycle's
+    # views. The last cycle's point steps move the points after its normal steps; the output's
+    # normals follow them. 0: the output's normals are the last normal steps'.
+    final_normal_refresh_k: int = 0
     # divergence guard (module docstring): a step that grows the cloud's extent beyond
     # blowup_extent x its start's, or the image loss beyond blowup_loss x its cycle's first, is
     # undone and the rates halved; 0 turns a test off. After max_lr_halvings: OptimizationDiverged.
@@ -238,7 +239,8 @@ class OptimizerConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if int(self.frames_every) != self.frames_every or self.frames_every < 1:
             raise ValueError(f"frames_every must be a positive integer, got {self.frames_every}")
-        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles", "hull_views"):
+        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles", "hull_views",
+                     "final_normal_refresh_k"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.cycles + self.error_aware_cycles == 0 or self.normal_steps + self.point_steps == 0:
@@ -264,7 +266,7 @@ class OptimizerConfig:
         if self.final_projection_k > 0:
             need = max(need, self.final_projection_k * self.reg_dilation + 1)
         if self.normal_refresh != "none":
-            need = max(need, self.normal_refresh_k + 1)
+            need = max(need, max(self.normal_refresh_k, self.final_normal_refresh_k) + 1)
         return need
 
     def check_points(self, n: int, what: str = "the cloud") -> None:
@@ -633,7 +635,7 @@ class MultiViewOptimizer:
             g = s / (ok.sum(1) + 1)
         return g
 
-    def _refit_normals(self, p: torch.Tensor, cams: Cameras | None = None):
+    def _refit_normals(self, p: torch.Tensor, cams: Cameras | None = None, k: int | None = None):
         """Normals := PCA normals of the current points, signed to agree with the current normals
         (``normal_orientation="current"``) or to face the views in ``cams`` that see their points
         (``"views"``, :func:`dss.orientation.orient_to_views`; unseen points: the current sign).
@@ -646,7 +648,7 @@ class MultiViewOptimizer:
         """
         from .pointcloud import estimate_normals
 
-        n = estimate_normals(p, k=self.cfg.normal_refresh_k, orient="none").to(p.device)
+        n = estimate_normals(p, k=k or self.cfg.normal_refresh_k, orient="none").to(p.device)
         if self.cfg.normal_orientation == "views" and cams is not None:
             n, unseen = orient_to_views(p, n, cams, self.settings, fallback=self.normals.detach(),
                                         backend=self.backend, sigma=self._sigma)
@@ -756,15 +758,15 @@ class MultiViewOptimizer:
         return step
 
     def refit_final_normals(self) -> None:
-        """The configured final normal re-fit (``final_normal_refresh`` with ``normal_refresh``):
-        the normals re-fitted to the current points as at a cycle start, signed with the last
-        cycle's views; nothing when it is off (a caller that defers the final projection calls
-        this after it)."""
-        if self.cfg.final_normal_refresh and self.cfg.normal_refresh != "none":
+        """The configured final normal re-fit (``final_normal_refresh_k`` > 0 with
+        ``normal_refresh``): the normals re-fitted to the current points over that many
+        neighbours, signed as at a cycle start with the last cycle's views; nothing when it is
+        off (a caller that defers the final projection calls this after it)."""
+        if self.cfg.final_normal_refresh_k > 0 and self.cfg.normal_refresh != "none":
             p = self.points.detach()
             s = self.settings
             self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
-            self._refit_normals(p, self._last_cams)
+            self._refit_normals(p, self._last_cams, k=self.cfg.final_normal_refresh_k)
 
     def project_outliers(self, points: torch.Tensor) -> torch.Tensor:
         """The configured final projection (``final_projection_k`` > 0) of ``points`` (N, 3):

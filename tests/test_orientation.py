@@ -95,16 +95,16 @@ def test_final_normal_refresh_fits_the_output_normals_to_the_final_points():
 
     def run(final):
         cfg = OptimizerConfig(cycles=1, normal_steps=1, point_steps=4, lr_scale=1.0, lr_points=1.0, momentum=0.0,
-                              normal_refresh="pca", normal_orientation="views", final_normal_refresh=final,
+                              normal_refresh="pca", normal_orientation="views", final_normal_refresh_k=final,
                               projection_weight=0.0, repulsion_weight=0.0)
         opt = MultiViewOptimizer(sp, sn, lambda c: render(tp, tn, c, st).images, cfg, st, center=(0, 0, 0),
                                  radius=0.4, image_size=48)
         return opt.run()
 
-    res = run(True)
+    res = run(16)
     pca = estimate_normals(res.points, k=16, orient="none")
     assert torch.allclose((res.normals * pca).sum(1).abs(), torch.ones(len(sp)), atol=1e-4)
     assert ((res.normals * torch.nn.functional.normalize(res.points, dim=1)).sum(1) > 0).float().mean() > 0.97
-    plain = run(False)
+    plain = run(0)
     assert not torch.allclose((plain.normals * estimate_normals(plain.points, k=16, orient="none")).sum(1).abs(),
                               torch.ones(len(sp)), atol=1e-4)
