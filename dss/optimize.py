@@ -78,6 +78,7 @@ from .regularizers import (
     with_new_differences,
 )
 from .render import RenderOutput, RenderSettings, render
+from .sgd import SGD
 from .shading import shade
 from .splats import auto_sigma
 from .timing import StageClock
@@ -400,8 +401,9 @@ class MultiViewOptimizer:
             self.opt_n = torch.optim.Adam([self.normals], lr=c.adam_lr_normals * self.lr_scale)
             return
         nest = c.nesterov and c.momentum > 0
-        self.opt_p = torch.optim.SGD([self.points], lr=c.lr_points * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=nest)
-        self.opt_n = torch.optim.SGD([self.normals], lr=c.lr_normals * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=nest)
+        # dss.sgd.SGD computes torch.optim.SGD's update without importing torch._dynamo (~2 s)
+        self.opt_p = SGD([self.points], lr=c.lr_points * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=nest)
+        self.opt_n = SGD([self.normals], lr=c.lr_normals * c.lr_scale * self.lr_scale, momentum=c.momentum, nesterov=nest)
 
     def _image_loss(self, images, target):
         if self.cfg.image_loss == "smape":

@@ -12,7 +12,7 @@ import torch
 
 from .io_utils import atomic_write_bytes
 
-__all__ = ["to_uint8", "image_grid", "save_png", "save_grid", "colorize_normals", "colorize_depth"]
+__all__ = ["to_uint8", "image_grid", "labelled_rows", "save_png", "save_grid", "colorize_normals", "colorize_depth"]
 
 
 def to_uint8(img, lo: float = 0.0, hi: float = 1.0) -> np.ndarray:
@@ -42,15 +42,42 @@ def image_grid(images, ncols: int | None = None, pad: int = 2, pad_value: int = 
     return out
 
 
-def save_png(path: str | os.PathLike, img_u8: np.ndarray) -> Path:
-    """Write a uint8 image as PNG, atomically."""
-    import matplotlib
+def labelled_rows(rows, labels, pad: int = 4, label_width: int | None = None, font_size: int = 14) -> np.ndarray:
+    """Rows of images with a label left of each row, as one (H', W', 3) uint8 picture.
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.image as mpimg
+    ``rows``: one (V, H, W, C) float tensor or array in [0, 1] per row (rows may have different
+    V; all images the same H, W); ``labels``: one string per row. Pillow draws the text, so no
+    plotting library is imported (matplotlib's import alone takes about a second).
+    """
+    from PIL import Image, ImageDraw, ImageFont
+
+    if len(rows) != len(labels) or not rows:
+        raise ValueError(f"labelled_rows: {len(rows)} rows and {len(labels)} labels")
+    tiles = [[to_uint8(im) for im in row] for row in rows]
+    H, W = tiles[0][0].shape[:2]
+    font = ImageFont.load_default(size=font_size)
+    if label_width is None:
+        label_width = max(int(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(t, font=font)) for t in labels) + 2 * pad
+    ncols = max(len(r) for r in tiles)
+    out = np.full((len(tiles) * (H + pad) + pad, label_width + ncols * (W + pad) + pad, 3), 255, np.uint8)
+    for r, row in enumerate(tiles):
+        y = pad + r * (H + pad)
+        for c, im in enumerate(row):
+            x = label_width + pad + c * (W + pad)
+            out[y:y + H, x:x + W] = im
+    canvas = Image.fromarray(out)
+    draw = ImageDraw.Draw(canvas)
+    for r, text in enumerate(labels):
+        draw.text((pad, pad + r * (H + pad) + H // 2), text, fill=(0, 0, 0), font=font, anchor="lm")
+    return np.asarray(canvas)
+
+
+def save_png(path: str | os.PathLike, img_u8: np.ndarray) -> Path:
+    """Write a uint8 (H, W, 3) image as PNG, atomically (Pillow's encoder)."""
+    from PIL import Image
 
     buf = io.BytesIO()
-    mpimg.imsave(buf, img_u8, format="png")
+    Image.fromarray(np.ascontiguousarray(img_u8, np.uint8)).save(buf, format="png")
     return atomic_write_bytes(path, buf.getvalue())
 
 

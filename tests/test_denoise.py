@@ -299,8 +299,9 @@ def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
 
     out = tmp_path / "run"
     m = run(compose_cfg("denoise", denoise_overrides(
+        # the paper's schedule (a point step on the image term) at the paper's point rate
         case, out, "reference=onnx", f"reference.model={tiny_onnx}", "reference.threads=1",
-        "optimizer.cycles=2", "optimizer.point_steps=1", "image_size=null")))
+        "optimizer.cycles=2", "optimizer.point_steps=1", "optimizer.lr_points=5.0", "image_size=null")))
     assert m["render"]["source"] == "model"
     assert m["render"]["image_size"] == [48, 48]  # from the model file, not conf/render/pairs.yaml (128)
     assert m["render"]["spec"]["fov_deg"] == 35.0 and m["render"]["spec"]["light"]["ambient"] == 0.25
@@ -534,20 +535,25 @@ def test_budget_presets_set_views_and_scale_auto_cycles():
     def cfg(**kw):
         return OmegaConf.create({"views": None, "budget": "auto", "budget_fast_above": 1000,
                                  "budgets": {"default": {"views": 12, "cycles_scale": 1.0, "filter_image_size": 64},
-                                             "fast": {"views": 4, "cycles_scale": 0.5, "fusion_passes": 2,
-                                                      "planes_image_size": 192}},
-                                 "image_size": None, "optimizer": {"cycles": 16}, "fusion": {"passes": None}, **kw})
+                                             "fast": {"views": 4, "cycles_scale": 0.5, "lr_points_scale": 2.0,
+                                                      "fusion_passes": 2, "planes_image_size": 192}},
+                                 "image_size": None, "optimizer": {"cycles": 16, "lr_points": 15.0},
+                                 "fusion": {"passes": None}, **kw})
 
     auto = {"setting": "auto", "used": 16}
+    lr_auto = {"setting": "auto", "used": 15.0}
     c = cfg()
-    note = resolve_budget(c, 1000, auto)
-    assert note["used"] == "default" and c.views == 12 and c.optimizer.cycles == 16
+    note = resolve_budget(c, 1000, auto, lr_auto)
+    assert note["used"] == "default" and c.views == 12 and c.optimizer.cycles == 16 and c.optimizer.lr_points == 15
     assert note["filter_image_size"] == 64  # the filters' render size; a given image_size wins
     assert "filter_image_size" not in resolve_budget(cfg(image_size=128), 1000, auto)
     c = cfg()
-    note = resolve_budget(c, 1001, auto)
-    assert note["used"] == "fast" and c.views == 4 and c.optimizer.cycles == 8
+    note = resolve_budget(c, 1001, auto, lr_auto)  # half the cycles, twice the point rate
+    assert note["used"] == "fast" and c.views == 4 and c.optimizer.cycles == 8 and c.optimizer.lr_points == 30
     assert c.fusion.passes == 2 and note["planes_image_size"] == 192
+    c = cfg()  # a given point rate is kept
+    resolve_budget(c, 1001, auto, {"setting": 15.0, "used": 15.0})
+    assert c.optimizer.lr_points == 15
     assert cfg().fusion.passes is None and resolve_budget(c := cfg(), 10, auto) and c.fusion.passes == 4
     c = cfg(fusion={"passes": 3}, image_size=128)  # a given fusion.passes and image_size win
     note = resolve_budget(c, 1001, auto)
@@ -681,8 +687,9 @@ def test_denoise_is_scale_free(case, tmp_path):
 
 def test_denoise_runs_where_open3d_is_missing(tmp_path):
     """A bare GPU node or container may have only torch, numpy, scipy, hydra and onnxruntime: the
-    job without ground truth (load, normals, outliers, DSS, fusion, write, figures) must not
-    import open3d. A sitecustomize on PYTHONPATH makes ``import open3d`` fail in the child."""
+    job (load, normals, outliers, DSS, fusion, write, figures, and the metrics against a clean
+    cloud and a binary triangle-PLY mesh) must not need open3d. A sitecustomize on PYTHONPATH makes ``import open3d``
+    fail in the child."""
     import os
     import subprocess
     import sys
@@ -697,17 +704,34 @@ def test_denoise_runs_where_open3d_is_missing(tmp_path):
     rng = np.random.default_rng(0)
     v = rng.normal(size=(1500, 3))
     v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    save_ply(tmp_path / "clean.ply", PointCloud(torch.from_numpy(v.astype(np.float32))))
     v = v + rng.normal(scale=0.02, size=v.shape)
     save_ply(tmp_path / "in.ply", PointCloud(torch.from_numpy(v.astype(np.float32))))
+    from scipy.spatial import ConvexHull
+
+    sphere = rng.normal(size=(400, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    faces = ConvexHull(sphere).simplices
+    records = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    records["n"], records["i"] = 3, faces
+    (tmp_path / "mesh.ply").write_bytes(
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(sphere)}\nproperty float x\nproperty float y\n"
+        f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n".encode()
+        + sphere.astype("<f4").tobytes() + records.tobytes())
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]),
            "OMP_NUM_THREADS": "1"}
     code = ("from experiments.apps.denoise import main; import sys; sys.argv = ['dss-denoise', *sys.argv[1:]]; main()")
     proc = subprocess.run(
-        [sys.executable, "-c", code, str(tmp_path / "in.ply"), "reference=identity", "noise=0.01",
-         "optimizer.cycles=1", "optimizer.normal_steps=2", "fusion.passes=1", "image_size=64",
+        [sys.executable, "-c", code, str(tmp_path / "in.ply"), f"mesh={tmp_path / 'mesh.ply'}",
+         f"clean={tmp_path / 'clean.ply'}", "reference=identity",
+         "noise=0.01", "optimizer.cycles=1", "optimizer.normal_steps=2", "fusion.passes=1", "image_size=64",
          "figures.image_size=32", "progress=false", "threads=1", f"hydra.run.dir={tmp_path / 'run'}"],
         env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "run" / "denoised.ply").is_file() and (tmp_path / "run" / "before_after.png").is_file()
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    out = m["summary"]["output"]["paper"]
+    assert 0 < out["p2m"] < m["summary"]["input"]["paper"]["p2m"]  # point-to-mesh without open3d
+    assert 0 < m["normal_error_deg"]["output"]["mean"] < 30
     probe = subprocess.run([sys.executable, "-c", "import open3d"], env=env, capture_output=True, text=True)
     assert probe.returncode != 0 and "blocked" in probe.stderr  # the block itself works

@@ -206,7 +206,9 @@ def test_chamfer_floor_positive_and_small():
     both = M.chamfer_floors((v, f), n=400, seed=0)  # one pair of samplings for every protocol
     assert set(both) == set(M.PROTOCOLS)
     assert both["paper"].chamfer == pytest.approx(r.chamfer)
-    assert both["score"].to_dict() == M.chamfer_floor((v, f), n=400, seed=0, protocol="score").to_dict()
+    alone = M.chamfer_floor((v, f), n=400, seed=0, protocol="score").to_dict()
+    for k, val in both["score"].to_dict().items():  # rescaled from the paper units: equal to rounding
+        assert val == (pytest.approx(alone[k], rel=1e-9, abs=1e-12) if isinstance(val, float) else alone[k]), k
 
 
 @pytest.mark.skipif(not os.path.exists(SHARED_MESH), reason="shared data not available")
@@ -248,3 +250,90 @@ def test_spacing_stats_tell_a_grid_from_a_clustered_cloud():
     assert spacing_stats(piled)["clustered_fraction"] == pytest.approx(0.6)
     with pytest.raises(ValueError, match="at least 2 points"):
         spacing_stats(grid[:1])
+
+
+@pytest.mark.parametrize("area", [0.0, 1e-3])
+def test_protocols_from_one_search_equal_each_alone(area):
+    """evaluate_protocols rescales one protocol's distances to the other's units: every number
+    equals that protocol's own evaluation (and the units differ, so rescaling is exercised)."""
+    rng = np.random.default_rng(3)
+    verts = rng.normal(size=(40, 3)) * [3.0, 1.0, 2.0] + 5.0
+    faces = np.array([rng.choice(40, 3, replace=False) for _ in range(80)])
+    clean = rng.normal(size=(300, 3)) * [3.0, 1.0, 2.0] + 5.0
+    pred = clean + rng.normal(size=clean.shape) * 0.05
+    both = M.evaluate_protocols(pred, clean, (verts, faces), ("score", "paper"), area)
+    keys = ("chamfer", "chamfer_gt_to_pred", "hausdorff", "hausdorff_dss_script", "p2m", "mesh_to_point")
+    for pr in ("paper", "score"):
+        alone = M.evaluate(pred, clean, (verts, faces), pr, area)
+        for k in keys:
+            assert getattr(both[pr], k) == pytest.approx(getattr(alone, k), rel=1e-9), (pr, k)
+    assert both["paper"].chamfer != pytest.approx(both["score"].chamfer, rel=1e-3)
+
+
+def test_ply_triangles_read_without_open3d_as_open3d_reads_them(tmp_path):
+    """load_mesh reads binary triangle PLYs itself (colours on faces and vertices included) and
+    gives open3d's arrays; polygons and ASCII files go to open3d."""
+    import open3d as o3d
+
+    from dss.pointcloud import read_ply_triangles
+
+    v, f = _tetra_mesh()
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v * 2.5 + 1), o3d.utility.Vector3iVector(f))
+    m.vertex_colors = o3d.utility.Vector3dVector(np.full((4, 3), 0.5))
+    path = str(tmp_path / "tetra.ply")
+    o3d.io.write_triangle_mesh(path, m)
+    got = read_ply_triangles(path)
+    assert got is not None
+    np.testing.assert_allclose(got[0], v * 2.5 + 1, rtol=1e-6)
+    np.testing.assert_array_equal(got[1], f)
+    ascii_path = str(tmp_path / "tetra_ascii.ply")
+    o3d.io.write_triangle_mesh(ascii_path, m, write_ascii=True)
+    assert read_ply_triangles(ascii_path) is None
+    np.testing.assert_array_equal(M.load_mesh(ascii_path)[1], f)
+    # a quad among the faces: not all records are (3, i, j, k), so open3d reads it
+    quad = tmp_path / "quad.ply"
+    body = (np.array([3], np.uint8).tobytes() + np.array([0, 1, 2], "<i4").tobytes()
+            + np.array([4], np.uint8).tobytes() + np.array([0, 1, 2, 3], "<i4").tobytes())
+    quad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+                     b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                     + v.astype("<f4").tobytes() + body)
+    assert read_ply_triangles(quad) is None
+    if os.path.exists(SHARED_MESH):  # a VCG file: vertex normals and colours, face colours
+        ours = M.load_mesh(SHARED_MESH)
+        ref = o3d.io.read_triangle_mesh(SHARED_MESH)
+        np.testing.assert_allclose(ours[0], np.asarray(ref.vertices), rtol=1e-6)
+        np.testing.assert_array_equal(ours[1], np.asarray(ref.triangles))
+
+
+def test_closest_triangles_without_open3d_are_exact(monkeypatch):
+    """The scipy search used where open3d is missing finds each point's closest triangle (brute
+    force), and point-to-mesh and mesh normals then equal open3d's answers."""
+    import builtins
+
+    rng = np.random.default_rng(4)
+    verts = rng.normal(size=(40, 3))
+    faces = np.array([rng.choice(40, 3, replace=False) for _ in range(90)])
+    pts = rng.normal(size=(300, 3)) * 1.2
+    tv = verts[faces]
+    P, T = np.repeat(pts, len(faces), 0), np.tile(tv, (len(pts), 1, 1))
+    D = M.point_triangle_sq(P, T[:, 0], T[:, 1], T[:, 2]).reshape(len(pts), len(faces))
+    d2, tri = M._closest_triangles_exact(pts, tv, k=2, chunk=37)
+    np.testing.assert_allclose(d2, D.min(1), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(D[np.arange(len(pts)), tri], D.min(1), rtol=1e-12, atol=1e-15)
+    with_o3d = (M.point_to_mesh_sq(pts, verts, faces), M.mesh_normals_at(pts, (verts, faces)))
+    real_import = builtins.__import__
+
+    def no_open3d(name, *args, **kwargs):
+        if name == "open3d" or name.startswith("open3d."):
+            raise ImportError("open3d blocked by the test")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_open3d)
+    np.testing.assert_allclose(M.point_to_mesh_sq(pts, verts, faces), with_o3d[0], rtol=1e-6, atol=1e-9)
+    # the normal is one of a closest triangle's (a point nearest a shared edge or vertex ties)
+    got = M.mesh_normals_at(pts, (verts, faces))
+    fn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    closest = D <= D.min(1, keepdims=True) * (1 + 1e-9) + 1e-15
+    assert all((fn[closest[i]] @ got[i]).max() > 1 - 1e-9 for i in range(len(pts)))
+    assert (np.abs((got * with_o3d[1]).sum(1)) > 1 - 1e-6).mean() > 0.9

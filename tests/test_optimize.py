@@ -442,3 +442,28 @@ def test_frames_every_refits_the_planes_every_kth_step_and_keeps_the_differences
     moved = pts + torch.tensor([0.0, 0.0, 0.01]) * torch.arange(len(pts))[:, None] / len(pts)
     kept = with_new_differences(frames, moved)
     assert kept.normal is frames.normal and not torch.equal(kept.diff, frames.diff)
+
+
+@pytest.mark.parametrize("momentum,nesterov", [(0.0, False), (0.9, False), (0.9, True)])
+def test_sgd_matches_torch_optim(momentum, nesterov):
+    """dss.sgd.SGD (no torch._dynamo import) makes torch.optim.SGD's steps, through a learning-rate
+    change and a momentum reset as the optimiser's bold driver and normal refit make them."""
+    from dss.sgd import SGD
+
+    gen = torch.Generator().manual_seed(0)
+    start = torch.randn(50, 3, generator=gen)
+    grads = [torch.randn(50, 3, generator=gen) for _ in range(6)]
+    ours, ref = start.clone().requires_grad_(True), start.clone().requires_grad_(True)
+    a = SGD([ours], lr=0.05, momentum=momentum, nesterov=nesterov)
+    b = torch.optim.SGD([ref], lr=0.05, momentum=momentum, nesterov=nesterov)
+    for i, g in enumerate(grads):
+        for opt, p in ((a, ours), (b, ref)):
+            opt.zero_grad(set_to_none=True)
+            p.grad = g.clone()
+            if i == 2:
+                opt.param_groups[0]["lr"] *= 0.5
+            if i == 4:
+                opt.state.clear()
+            opt.step()
+        assert torch.allclose(ours, ref, atol=1e-6, rtol=0), i
+    assert not torch.equal(ours, start)

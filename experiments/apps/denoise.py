@@ -184,11 +184,11 @@ def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0
 
 def score(pred: np.ndarray, clean: np.ndarray | None, mesh, protocols) -> dict:
     """``{protocol: metrics dict}`` (see :mod:`dss.metrics`), empty without ground truth."""
-    from dss.metrics import evaluate
+    from dss.metrics import evaluate_all
 
     if clean is None:
         return {}
-    return {pr: evaluate(pred, clean, mesh, pr).to_dict() for pr in protocols}
+    return evaluate_all(pred, clean, mesh, protocols)
 
 
 def resolve_by_noise(cfg: DictConfig, noise: float, key: str, cast=float) -> dict:
@@ -207,7 +207,8 @@ def resolve_by_noise(cfg: DictConfig, noise: float, key: str, cast=float) -> dic
 
 
 #: optimiser settings that may be ``auto`` (taken from ``<key>_by_noise`` in conf/denoise.yaml)
-BY_NOISE = (("cycles", int), ("projection_weight", float), ("reg_cutoff", float), ("final_projection_k", int))
+BY_NOISE = (("cycles", int), ("lr_points", float), ("projection_weight", float), ("reg_cutoff", float),
+            ("final_projection_k", int))
 
 
 def resolve_all_by_noise(cfg: DictConfig, noise: float, n_points: int | None = None) -> dict:
@@ -253,13 +254,16 @@ def resolve_neighbourhood(cfg: DictConfig, n_points: int, cutoff_note: dict | No
     return note
 
 
-def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = None) -> dict:
+def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = None,
+                   lr_note: dict | None = None) -> dict:
     """Apply the ``budget`` preset (``default`` | ``fast`` | ``auto``: ``fast`` for inputs of more
     than ``budget_fast_above`` points): ``cfg.views`` when it is null, the filters' and the planes
     channel's render sizes (``filter_image_size`` / ``planes_image_size`` in the note) when
     ``cfg.image_size`` is null, ``cfg.fusion.passes`` when it is null, and the preset's
     ``cycles_scale`` on cycles that came from ``cycles_by_noise`` (an explicit
-    ``optimizer.cycles`` is kept). Returns what was chosen and why (for metrics.json)."""
+    ``optimizer.cycles`` is kept) and its ``lr_points_scale`` on a point rate that came from
+    ``lr_points_by_noise`` (fewer cycles, longer steps: the regularisers move the points about
+    as far). Returns what was chosen and why (for metrics.json)."""
     setting = str(cfg.get("budget", "default"))
     presets = cfg.get("budgets") or {}
     if setting == "auto":
@@ -291,6 +295,11 @@ def resolve_budget(cfg: DictConfig, n_points: int, cycles_note: dict | None = No
     if scale != 1.0 and cycles_note is not None and cycles_note.get("setting") == "auto":
         cfg.optimizer.cycles = max(1, int(round(int(cfg.optimizer.cycles) * scale)))
         note["cycles"] = f"{cycles_note['used']} x {scale:g} -> {cfg.optimizer.cycles}"
+    lr_scale = float(preset.get("lr_points_scale", 1.0))
+    if lr_scale != 1.0 and lr_note is not None and lr_note.get("setting") == "auto":
+        used = float(cfg.optimizer.lr_points)
+        cfg.optimizer.lr_points = used * lr_scale
+        note["lr_points"] = f"{used:g} x {lr_scale:g} -> {cfg.optimizer.lr_points:g}"
     return note
 
 
@@ -342,28 +351,10 @@ def render_rows(clouds: list[tuple[torch.Tensor, torch.Tensor]], cams, settings,
 
 
 def save_image_rows(path: Path, rows: list[torch.Tensor], labels: list[str]) -> Path:
-    """Grid PNG: one row per entry of ``rows`` ((V, H, W, C) each), labelled on the left."""
-    import matplotlib
+    """Grid PNG: one row per entry of ``rows`` ((V, H, W, C) each, in [0, 1]), labelled on the left."""
+    from dss.viz import labelled_rows, save_png
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from dss.io_utils import atomic_savefig
-
-    V = rows[0].shape[0]
-    fig, axes = plt.subplots(len(rows), V, figsize=(2.2 * V, 2.2 * len(rows)), squeeze=False)
-    for r, (imgs, label) in enumerate(zip(rows, labels)):
-        for v in range(V):
-            ax = axes[r][v]
-            ax.imshow(imgs[v].detach().cpu().numpy().clip(0, 1))
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if v == 0:
-                ax.set_ylabel(label, fontsize=10)
-    fig.tight_layout()
-    atomic_savefig(fig, path)
-    plt.close(fig)
-    return path
+    return save_png(path, labelled_rows([r.clamp(0, 1) for r in rows], labels))
 
 
 def save_loss_curve(path: Path, history: dict, steps_per_cycle: int, title: str, image_loss: str = "l1") -> Path:
@@ -660,7 +651,7 @@ def run(cfg: DictConfig) -> dict:
         log.warning("the denoiser was trained for noise %.3g but this cloud's noise is %s %.3g: results may be poor",
                     generator.noise_level, "given as" if hint is not None else "estimated at", noise)
     by_noise = resolve_all_by_noise(cfg, noise, len(cloud))
-    budget_note = resolve_budget(cfg, len(cloud), by_noise["cycles"])
+    budget_note = resolve_budget(cfg, len(cloud), by_noise["cycles"], by_noise["lr_points"])
     spec, spec_source, shading, shading_name = resolve_channel(cfg, generator, budget_note)
     fusion_config(cfg, shading)  # a bad fusion block is refused before any work
     # settings resolved: the point count they need is known before any optimisation
