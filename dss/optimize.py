@@ -67,6 +67,7 @@ from .cameras import Cameras
 from .gc_pause import frozen_gc
 from .hull import fill_displacement, hull_displacement, nearest_covered
 from .losses import l1_loss, smape_loss
+from .orientation import orient_to_views
 from .pointcloud import all_finite
 from .regularizers import (
     ProjectionLoss,
@@ -128,6 +129,11 @@ class OptimizerConfig:
     # fraction of the way to its silhouette (dss.hull: a visual-hull pull that tears membranes
     # across holes, where the visibility gradient is zero). 0: the paper.
     hull_step: float = 0.0
+    # > 0 (with hull_step > 0): the hull pull also tests this many more views per cycle, sampled
+    # like the step's (their references are rendered once per cycle for their silhouettes only;
+    # no image loss). A point outside the visual hull in a view the cycle does not render is
+    # otherwise left there until a later cycle's views happen to include one that shows it.
+    hull_views: int = 0
     # > 0: after every point step, each reference pixel the render leaves empty pulls the nearest
     # projected point this fraction of the way to it (dss.hull.fill_displacement), times
     # lr_decay^cycle like the learning rates (thin parts form early, the surface then settles).
@@ -185,6 +191,15 @@ class OptimizerConfig:
     grad_smoothing: int = 0  # passes of neighbour averaging of the image gradient on the points
     normal_refresh: str = "none"  # "none" | "pca": re-fit normals to the points at each cycle start
     normal_refresh_k: int = 16
+    # the sign of a re-fitted normal (normal_refresh): "current", that of the normal it replaces;
+    # "views", toward the cycle's cameras that see its point (dss.orientation; a point no view
+    # sees keeps the current sign). An addition to the paper, like the re-fit itself.
+    normal_orientation: str = "current"
+    # > 0 (with normal_refresh): re-fit the normals once more after the last cycle (and the final
+    # projection) over this many neighbours, signed as at a cycle start with the last cycle's
+    # views. The last cycle's point steps move the points after its normal steps; the output's
+    # normals follow them. 0: the output's normals are the last normal steps'.
+    final_normal_refresh_k: int = 0
     # divergence guard (module docstring): a step that grows the cloud's extent beyond
     # blowup_extent x its start's, or the image loss beyond blowup_loss x its cycle's first, is
     # undone and the rates halved; 0 turns a test off. After max_lr_halvings: OptimizationDiverged.
@@ -216,6 +231,8 @@ class OptimizerConfig:
             raise ValueError(f"point_motion must be 'free', 'normal' or 'pca', got {self.point_motion!r}")
         if self.normal_refresh not in ("none", "pca"):
             raise ValueError(f"normal_refresh must be 'none' or 'pca', got {self.normal_refresh!r}")
+        if self.normal_orientation not in ("current", "views"):
+            raise ValueError(f"normal_orientation must be 'current' or 'views', got {self.normal_orientation!r}")
         if self.views <= 0:
             raise ValueError(f"views per step must be positive, got {self.views}")
         for name in ("lr_points", "lr_normals", "silhouette_weight", "hull_step", "fill_step"):
@@ -223,7 +240,8 @@ class OptimizerConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if int(self.frames_every) != self.frames_every or self.frames_every < 1:
             raise ValueError(f"frames_every must be a positive integer, got {self.frames_every}")
-        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles"):
+        for name in ("cycles", "normal_steps", "point_steps", "error_aware_cycles", "hull_views",
+                     "final_normal_refresh_k"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.cycles + self.error_aware_cycles == 0 or self.normal_steps + self.point_steps == 0:
@@ -249,7 +267,7 @@ class OptimizerConfig:
         if self.final_projection_k > 0:
             need = max(need, self.final_projection_k * self.reg_dilation + 1)
         if self.normal_refresh != "none":
-            need = max(need, self.normal_refresh_k + 1)
+            need = max(need, max(self.normal_refresh_k, self.final_normal_refresh_k) + 1)
         return need
 
     def check_points(self, n: int, what: str = "the cloud") -> None:
@@ -340,6 +358,14 @@ class MultiViewOptimizer:
             radius = float((p - torch.tensor(center)).norm(dim=1).max())
         self.sampler = sampler or SphereViewSampler(tuple(center), radius, self.cfg.views, image_size,
                                                     self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed)
+        # the hull pull's extra views (hull_views): their own generator, so the step's views are
+        # the same with and without them
+        self._hull_sampler = None
+        if self.cfg.hull_views > 0 and self.cfg.hull_step > 0:
+            self._hull_sampler = SphereViewSampler(tuple(center), radius, self.cfg.hull_views, image_size,
+                                                   self.cfg.fov_deg, self.cfg.view_jitter, seed=self.cfg.seed + 7919)
+        self._hull_extra: tuple[Cameras, torch.Tensor, torch.Tensor] | None = None
+        self._last_cams: Cameras | None = None  # the last cycle's views (final_normal_refresh)
         self.proj = ProjectionLoss(_bandwidth(self.cfg.projection_bandwidth, p), k=self.cfg.reg_k,
                                    projection_mode=self.cfg.projection_mode, cutoff=self.cfg.reg_cutoff,
                                    min_neighbors=self.cfg.reg_min_neighbors)
@@ -526,7 +552,10 @@ class MultiViewOptimizer:
         with torch.no_grad():
             self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
             if image_moves_points and self.cfg.hull_step > 0:
-                d, _ = hull_displacement(self.points, cams, *self._coverage(target, nearest=True))
+                d, n_out = hull_displacement(self.points, cams, *self._coverage(target, nearest=True))
+                if self._hull_extra is not None:  # averaged over the violated views of both sets
+                    d2, n2 = hull_displacement(self.points, *self._hull_extra)
+                    d = (d * n_out[:, None] + d2 * n2[:, None]) / (n_out + n2).clamp_min(1)[:, None].to(d.dtype)
                 self.points.add_(self.cfg.hull_step * d)
             if image_moves_points and self.cfg.fill_step > 0:
                 d, _ = fill_displacement(self.points, cams, self._coverage(target), out.mask)
@@ -559,16 +588,26 @@ class MultiViewOptimizer:
         log.warning("%s: step rejected, learning rates halved (x%.3g of the configured ones)", why, self.lr_scale)
         self._make_optimizers()
 
-    def _refresh_neighbourhoods(self):
+    def _refresh_neighbourhoods(self, cams: Cameras | None = None):
         """Once per cycle: kNN lists for the regularisers and the splat sizes (points move little
-        within a cycle; the regularisers re-apply their bandwidth masks every step)."""
+        within a cycle; the regularisers re-apply their bandwidth masks every step), and the
+        normal re-fit (``normal_refresh``; signed by ``cams`` with ``normal_orientation="views"``)."""
         p = self.points.detach()
-        if self.cfg.normal_refresh == "pca":
-            self._refit_normals(p)
-        self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
-        self._frames, self._frames_age = {}, 0  # new neighbour lists: fit anew
         s = self.settings
         self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
+        if self.cfg.normal_refresh == "pca":
+            self._refit_normals(p, cams)
+        self._neighbors = find_neighbors(p, self.cfg.reg_k, dilation=self.cfg.reg_dilation)
+        self._frames, self._frames_age = {}, 0  # new neighbour lists: fit anew
+
+    def _hull_views(self) -> tuple[Cameras, torch.Tensor, torch.Tensor]:
+        """The cycle's extra silhouette views (``hull_views``): cameras, reference coverage
+        (V, H, W) and its nearest covered pixels (:func:`dss.hull.nearest_covered`)."""
+        cams = self._hull_sampler.sample().to(self.points.device)
+        ref = self.reference(cams).detach()
+        bg = torch.as_tensor(self.settings.background, dtype=ref.dtype, device=ref.device).flatten()
+        mask = (ref - bg).abs().amax(-1) > 1e-6
+        return cams, mask, nearest_covered(mask)
 
     def _bold_driver(self, worse: bool):
         """Halve the point learning rate after a point step that raised the image loss (and drop
@@ -598,8 +637,10 @@ class MultiViewOptimizer:
             g = s / (ok.sum(1) + 1)
         return g
 
-    def _refit_normals(self, p: torch.Tensor):
-        """Normals := PCA normals of the current points, signed to agree with the current normals.
+    def _refit_normals(self, p: torch.Tensor, cams: Cameras | None = None, k: int | None = None):
+        """Normals := PCA normals of the current points, signed to agree with the current normals
+        (``normal_orientation="current"``) or to face the views in ``cams`` that see their points
+        (``"views"``, :func:`dss.orientation.orient_to_views`; unseen points: the current sign).
 
         Large deformations move points far in a few cycles, and the image gradient of the
         normals (a colour match per pixel) does not keep up: measured on sphere -> teapot, the
@@ -609,10 +650,15 @@ class MultiViewOptimizer:
         """
         from .pointcloud import estimate_normals
 
-        n = estimate_normals(p, k=self.cfg.normal_refresh_k, orient="none").to(p.device)
-        sign = torch.where((n * self.normals.detach()).sum(1, keepdim=True) < 0, -1.0, 1.0)
+        n = estimate_normals(p, k=k or self.cfg.normal_refresh_k, orient="none").to(p.device)
+        if self.cfg.normal_orientation == "views" and cams is not None:
+            n, unseen = orient_to_views(p, n, cams, self.settings, fallback=self.normals.detach(),
+                                        backend=self.backend, sigma=self._sigma)
+            self.history.setdefault("unseen_fraction", []).append(float(unseen.float().mean()))
+        else:
+            n = n * torch.where((n * self.normals.detach()).sum(1, keepdim=True) < 0, -1.0, 1.0)
         with torch.no_grad():
-            self.normals.copy_(n * sign)
+            self.normals.copy_(n)
         # momentum of the old normals is meaningless for the new ones
         self.opt_n.state.clear()
 
@@ -640,6 +686,7 @@ class MultiViewOptimizer:
         if final_projection:
             with torch.no_grad():
                 self.points.copy_(self.project_outliers(self.points.detach()))
+            self.refit_final_normals()
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step
         # the rest of each step: loss, optimiser updates, clipping, the divergence guard, callbacks
@@ -663,11 +710,14 @@ class MultiViewOptimizer:
                     cams = self._error_aware(cams, gen)
                 else:  # on the points' device: the renders and the reference see one device
                     cams = self.sampler.sample().to(self.points.device)
+            self._last_cams = cams
             with torch.no_grad(), self.clock("references"):
                 target = self.reference(cams).detach()
+                if self._hull_sampler is not None:
+                    self._hull_extra = self._hull_views()
             self._cycle_decay = c.lr_decay ** cycle
             with self.clock("neighbourhoods"):
-                self._refresh_neighbourhoods()
+                self._refresh_neighbourhoods(cams)
             if cycle > 0 and c.lr_decay != 1.0:
                 for opt in (self.opt_p, self.opt_n):
                     for group in opt.param_groups:
@@ -708,6 +758,17 @@ class MultiViewOptimizer:
                 if progress is not None:
                     progress(step, loss)
         return step
+
+    def refit_final_normals(self) -> None:
+        """The configured final normal re-fit (``final_normal_refresh_k`` > 0 with
+        ``normal_refresh``): the normals re-fitted to the current points over that many
+        neighbours, signed as at a cycle start with the last cycle's views; nothing when it is
+        off (a caller that defers the final projection calls this after it)."""
+        if self.cfg.final_normal_refresh_k > 0 and self.cfg.normal_refresh != "none":
+            p = self.points.detach()
+            s = self.settings
+            self._sigma = auto_sigma(p, s.sigma_k, s.sigma_scale) if s.sigma == "auto" else None
+            self._refit_normals(p, self._last_cams, k=self.cfg.final_normal_refresh_k)
 
     def project_outliers(self, points: torch.Tensor) -> torch.Tensor:
         """The configured final projection (``final_projection_k`` > 0) of ``points`` (N, 3):

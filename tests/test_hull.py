@@ -83,3 +83,38 @@ def test_hull_pull_tears_a_membrane_the_image_gradient_keeps(cpp_backend):
     with_pull = _annulus_run(0.3)
     assert without > 0.9 * in_hole_before, without  # the visibility gradient leaves the membrane
     assert with_pull < 0.1 * without, (without, with_pull)
+
+
+def _front_view_outliers(hull_views):
+    """A sphere seen by one fixed camera on +z, plus points in front of it along the camera's
+    axis: inside that view's silhouette, outside most others'. Only the hull pull moves points
+    (no point rate, no regularisers). Returns the outliers' final distance from the centre."""
+    from scenes import sphere_points
+
+    from dss.cameras import look_at
+    from dss.optimize import MultiViewOptimizer, OptimizerConfig
+    from dss.render import RenderSettings, render
+
+    tp, tn = sphere_points(1500, 0.3)
+    out_p = torch.tensor([[0.0, 0.0, 0.55], [0.02, -0.01, 0.5], [-0.02, 0.02, 0.6]])
+    sp = torch.cat([sphere_points(500, 0.3)[0], out_p])
+    sn = torch.nn.functional.normalize(sp, dim=1)
+    st = RenderSettings()
+    cams = look_at(torch.tensor([[0.0, 0.0, 2.5]]), (0, 0, 0), (0, 1, 0), 60.0, (48, 48))
+
+    class Fixed:
+        def sample(self):
+            return cams
+
+    cfg = OptimizerConfig(views=1, cycles=2, normal_steps=0, point_steps=10, lr_points=0.0, projection_weight=0.0,
+                          repulsion_weight=0.0, hull_step=0.3, hull_views=hull_views)
+    opt = MultiViewOptimizer(sp, sn, lambda c: render(tp, tn, c, st).images, cfg, st, sampler=Fixed(),
+                             center=(0, 0, 0), radius=0.7, image_size=48)
+    return opt.run().points[-3:].norm(dim=1)
+
+
+def test_extra_hull_views_pull_in_points_the_step_views_cannot_see_outside(cpp_backend):
+    without = _front_view_outliers(0)
+    with_views = _front_view_outliers(8)
+    assert (without > 0.49).all(), without  # inside the one view's silhouette: no pull
+    assert (with_views < 0.36).all(), with_views  # the side views' silhouettes pull them in

@@ -236,7 +236,8 @@ def run(cfg: DictConfig) -> dict:
     if final_step not in snaps:
         snap_steps.add(final_step)
         record(final_step, result.points, result.normals) if not any(c["step"] == final_step for c in chamfer_log) else None
-        snaps[final_step] = _snapshot(result.points, result.normals, snap_cams, settings, cfg.shading, backend)
+    # the last column is the output: after the final projection and normal re-fit, if configured
+    snaps[final_step] = _snapshot(result.points, result.normals, snap_cams, settings, cfg.shading, backend)
 
     save_ply(out / "final.ply", PointCloud(result.points, result.normals))
     (out / "snapshots").mkdir(exist_ok=True)
