@@ -329,42 +329,18 @@ def _segment_min(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.nd
 
 def _closest_triangles_exact(points: np.ndarray, tv: np.ndarray, k: int = 8, chunk: int = 16384):
     """(squared distance (K,), index (K,)) of each point's closest triangle of tv (F,3,3), with
-    scipy only: the ``k`` triangles of nearest centroid bound the distance, then every triangle
-    that could beat the bound (centroid within it plus the triangle's radius, bucketed by radius
-    as in :func:`_refine_point_to_triangles`) is tested exactly. Slower than open3d's BVH
-    (about 1 s vs 0.1 s at 20K points and 45K triangles) and used where open3d is missing."""
-    centroids = tv.mean(axis=1)
+    scipy only: the ``k`` triangles of nearest centroid bound the distance, then
+    :func:`_refine_point_to_triangles` tests every triangle that could beat the bound. Slower
+    than open3d's BVH (about 1 s vs 0.1 s at 20K points and 45K triangles) and used where
+    open3d is missing."""
     k = int(min(k, len(tv)))
-    _, knn = cKDTree(centroids).query(points, k=k, workers=-1)
+    _, knn = cKDTree(tv.mean(axis=1)).query(points, k=k, workers=-1)
     knn = knn.reshape(len(points), k)
     qi, ti = np.repeat(np.arange(len(points)), k), knn.reshape(-1)
     d = point_triangle_sq(points[qi], tv[ti, 0], tv[ti, 1], tv[ti, 2]).reshape(len(points), k)
     j = d.argmin(1)
-    best, arg = d[np.arange(len(points)), j], knn[np.arange(len(points)), j]
-    radii = np.sqrt(((tv - centroids[:, None, :]) ** 2).sum(-1).max(axis=1))
-    rmax = max(float(radii.max()), 1e-300)
-    bucket = np.floor(np.log2(np.maximum(radii, rmax * 1e-6) / rmax)).astype(np.int64)
-    for b in np.unique(bucket):
-        idx = np.nonzero(bucket == b)[0]
-        tree = cKDTree(centroids[idx])
-        rb = float(radii[idx].max())
-        for s in range(0, len(points), chunk):
-            q = points[s : s + chunk]
-            rad = (np.sqrt(best[s : s + chunk]) + rb) * (1 + 1e-9) + 1e-12
-            cand = tree.query_ball_point(q, rad, workers=-1, return_sorted=False)
-            lens = np.fromiter((len(c) for c in cand), dtype=np.int64, count=len(cand))
-            if lens.sum() == 0:
-                continue
-            qi = np.repeat(np.arange(len(q)), lens)
-            ti = idx[np.concatenate([np.asarray(c, dtype=np.int64) for c in cand if len(c)])]
-            d = point_triangle_sq(q[qi], tv[ti, 0], tv[ti, 1], tv[ti, 2])
-            m = _segment_min(d, qi, len(q))
-            better = m < best[s : s + chunk]
-            hit = (d == m[qi]) & better[qi]
-            first_q, first = np.unique(qi[hit], return_index=True)
-            best[s + first_q] = m[first_q]
-            arg[s + first_q] = ti[hit][first]
-    return best, arg
+    rows = np.arange(len(points))
+    return _refine_point_to_triangles(points, d[rows, j], tv, 0.0, chunk, arg=knn[rows, j])
 
 
 def _closest_triangle_ids(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -414,20 +390,22 @@ def mesh_normals_at(points: Any, mesh: Any) -> np.ndarray:
     return fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
 
 
-def normal_error_deg(points: Any, normals: Any, mesh: Any) -> dict:
+def normal_error_deg(points: Any, normals: Any, mesh: Any, mesh_normals: np.ndarray | None = None) -> dict:
     """Unoriented angle (degrees) between each normal and the normal of the mesh triangle
     closest to its point (:func:`mesh_normals_at`): ``{"mean", "median", "p90"}``.
 
     Args:
         points, normals: (K, 3) in the mesh's frame (normals need not be unit length).
         mesh: (vertices, faces) or anything :func:`as_mesh` takes.
+        mesh_normals: ``mesh_normals_at(points, mesh)`` when already computed (several normal
+            sets scored on the same points search the mesh once).
     Unoriented (|cos|) because point normals from PCA carry no sign of their own.
     """
     p = as_points(points)
     n = as_points(normals, "normals")
     if n.shape != p.shape:
         raise ValueError(f"normals {n.shape} must match points {p.shape}")
-    fn = mesh_normals_at(p, mesh)
+    fn = mesh_normals_at(p, mesh) if mesh_normals is None else np.asarray(mesh_normals, np.float64)
     cos = np.abs((fn * n).sum(1)) / np.maximum(np.linalg.norm(n, axis=1), 1e-30)
     ang = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
     return {"mean": float(ang.mean()), "median": float(np.median(ang)), "p90": float(np.percentile(ang, 90))}
@@ -461,14 +439,17 @@ def _refine_point_to_triangles(
     tv: np.ndarray,
     min_triangle_area: float,
     chunk: int = 16384,
-) -> np.ndarray:
+    arg: np.ndarray | None = None,
+):
     """min(best, min_t d(p, t)^2) over all triangles tv (F,3,3), given an upper bound ``best``.
 
     A triangle with centroid c and radius r (largest centroid-vertex distance) can only beat
     the bound if |p - c| <= sqrt(best) + r. Triangles are bucketed by radius (factors of 2)
-    so one long sliver does not widen the search for all the others.
+    so one long sliver does not widen the search for all the others. With ``arg`` (K,), the
+    triangle index that gives ``best``, returns ``(best, arg)`` with the minimisers tracked.
     """
     best = best.copy()
+    arg = None if arg is None else arg.copy()
     centroids = tv.mean(axis=1)
     radii = np.sqrt(((tv - centroids[:, None, :]) ** 2).sum(-1).max(axis=1))
     rmax = max(float(radii.max()), 1e-300)
@@ -487,8 +468,13 @@ def _refine_point_to_triangles(
             qi = np.repeat(np.arange(len(q)), lens)
             ti = idx[np.concatenate([np.asarray(c, dtype=np.int64) for c in cand if len(c)])]
             d = point_triangle_sq(q[qi], tv[ti, 0], tv[ti, 1], tv[ti, 2], min_triangle_area)
-            best[s : s + chunk] = np.minimum(best[s : s + chunk], _segment_min(d, qi, len(q)))
-    return best
+            m = _segment_min(d, qi, len(q))
+            if arg is not None:  # the first candidate at each improved minimum
+                hit = (d == m[qi]) & (m < best[s : s + chunk])[qi]
+                first_q, first = np.unique(qi[hit], return_index=True)
+                arg[s + first_q] = ti[hit][first]
+            best[s : s + chunk] = np.minimum(best[s : s + chunk], m)
+    return best if arg is None else (best, arg)
 
 
 def mesh_to_point_sq(

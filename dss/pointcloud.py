@@ -190,6 +190,20 @@ def _fixed_dtype(element: PlyElement, endian: str) -> np.dtype | None:
     return np.dtype([(n, endian + t) for n, t in element.properties])
 
 
+def _binary_offset(header: PlyHeader, element: PlyElement, endian: str) -> int | None:
+    """Byte offset of ``element``'s body in a binary PLY file, or None when an element before
+    it has list properties (its size is then not known from the header)."""
+    offset = header.size
+    for e in header.elements:
+        if e is element:
+            return offset
+        dt = _fixed_dtype(e, endian)
+        if dt is None:
+            return None
+        offset += e.count * dt.itemsize
+    return None
+
+
 def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray] | None:
     """The vertex element of a PLY file as ``{property: (N,) array}``, checked against the header.
 
@@ -235,14 +249,9 @@ def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray] | None:
                                       f"{row.strip()[:80]!r}") from None
         return {n: values[:, j] for j, n in enumerate(names)}
     endian = "<" if header.format == "binary_little_endian" else ">"
-    offset = header.size
-    for e in header.elements:
-        if e is vertex:
-            break
-        dt = _fixed_dtype(e, endian)
-        if dt is None:
-            return None
-        offset += e.count * dt.itemsize
+    offset = _binary_offset(header, vertex, endian)
+    if offset is None:
+        return None
     dt = _fixed_dtype(vertex, endian)
     available = max(0, path.stat().st_size - offset)
     complete = available // dt.itemsize if dt.itemsize else 0
@@ -271,17 +280,9 @@ def read_ply_triangles(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]
     cols = read_ply_vertices(path)
     if cols is None or not all(n in cols for n in ("x", "y", "z")):
         return None
-    offset = header.size
-    face = None
-    for e in header.elements:
-        if e.name == "face":
-            face = e
-            break
-        dt = _fixed_dtype(e, endian)
-        if dt is None:
-            return None
-        offset += e.count * dt.itemsize
-    if face is None:
+    face = header.element("face")
+    offset = None if face is None else _binary_offset(header, face, endian)
+    if offset is None:
         return None
     fields, index_name = [], None
     for name, t in face.properties:

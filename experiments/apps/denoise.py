@@ -687,14 +687,15 @@ def run(cfg: DictConfig) -> dict:
     m_out = score(pts.numpy(), clean, mesh, protocols)
     normal_error = None
     if mesh is not None:  # degrees to the closest ground-truth triangle's normal (input frame)
-        from dss.metrics import normal_error_deg
+        from dss.metrics import mesh_normals_at, normal_error_deg
 
+        at_out = mesh_normals_at(pts.numpy(), mesh)  # three normal sets on the same points
         normal_error = {"input_pca": normal_error_deg(cloud_in.points.numpy(), cloud_in.normals.numpy(), mesh),
-                        "optimized": normal_error_deg(pts.numpy(), nrm_opt.numpy(), mesh),
+                        "optimized": normal_error_deg(pts.numpy(), nrm_opt.numpy(), mesh, at_out),
                         # a PCA fit on the same denoised points: what the images' normals must beat
                         "pca": normal_error_deg(pts.numpy(), output_normals(pts, nrm_opt, "pca",
-                                                                             int(cfg.normals.k)).numpy(), mesh),
-                        "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh)}
+                                                                             int(cfg.normals.k)).numpy(), mesh, at_out),
+                        "output": normal_error_deg(pts.numpy(), nrm.numpy(), mesh, at_out)}
     clock.add("metrics", time.perf_counter() - t_metrics, time.process_time() - c_metrics)
     floor = None
     if mesh is not None and cfg.metrics.get("floor", True):
