@@ -90,6 +90,14 @@ __all__ = ["OptimizerConfig", "MultiViewOptimizer", "OptimizationResult", "Optim
            "window_for_cycle"]
 
 
+def bound_displacement(points: torch.Tensor, start: torch.Tensor, radius: float) -> torch.Tensor:
+    """``points`` (N, 3) with each displacement from ``start`` (N, 3) scaled back to at most
+    ``radius`` (same units); unchanged where it is within."""
+    d = points - start
+    length = d.norm(dim=1, keepdim=True)
+    return start + d * (float(radius) / length.clamp_min(1e-30)).clamp(max=1.0)
+
+
 class OptimizationDiverged(RuntimeError):
     """The optimisation blew up and halving the learning rates did not recover it."""
 
@@ -173,6 +181,12 @@ class OptimizerConfig:
     final_projection_threshold: float = 3.0
     final_projection_local_ratio: float = 3.0
     final_projection_iterations: int = 2
+    # > 0: no point ends a step farther than this (the cloud's units) from where it started the
+    # run: its displacement is scaled back onto that ball (dss.pipeline applies the same bound
+    # after the fusion and the final projection). Denoising only has to undo the noise: a point
+    # moved much farther than the noise is being moved by the smoothing itself (shrinkage of
+    # tips, folds filled in). 0: no bound (the paper).
+    max_displacement: float = 0.0
     views: int = 12
     fov_deg: float = 30.0
     view_jitter: float = 0.1
@@ -250,6 +264,8 @@ class OptimizerConfig:
             raise ValueError("final_projection_k, _threshold and _local_ratio must be >= 0, got "
                              f"{self.final_projection_k}, {self.final_projection_threshold}, "
                              f"{self.final_projection_local_ratio}")
+        if self.max_displacement < 0:
+            raise ValueError(f"max_displacement must be >= 0, got {self.max_displacement}")
         if self.blowup_extent < 0 or self.blowup_loss < 0 or self.max_lr_halvings < 0:
             raise ValueError("blowup_extent, blowup_loss and max_lr_halvings must be >= 0, got "
                              f"{self.blowup_extent}, {self.blowup_loss}, {self.max_lr_halvings}")
@@ -372,6 +388,7 @@ class MultiViewOptimizer:
         self.rep = RepulsionLoss(_bandwidth(self.cfg.repulsion_bandwidth, p), k=self.cfg.reg_k,
                                  cutoff=self.cfg.reg_cutoff, min_neighbors=self.cfg.reg_min_neighbors)
         # the divergence guard's yardstick: the start cloud or the cameras' sphere, the larger
+        self._start = self.points.detach().clone()  # max_displacement's centres
         self._extent0 = max(float((p.max(0).values - p.min(0).values).norm()), 2 * float(radius), 1e-12)
         self.proj.set_initial_shape(p)
         self.rep.set_initial_shape(p)
@@ -551,6 +568,8 @@ class MultiViewOptimizer:
             self.opt_n.step()
         with torch.no_grad():
             self.normals.copy_(torch.nn.functional.normalize(self.normals, dim=1))
+            if self.cfg.max_displacement > 0:
+                self.points.copy_(bound_displacement(self.points, self._start, self.cfg.max_displacement))
             if image_moves_points and self.cfg.hull_step > 0:
                 d, n_out = hull_displacement(self.points, cams, *self._coverage(target, nearest=True))
                 if self._hull_extra is not None:  # averaged over the violated views of both sets

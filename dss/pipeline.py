@@ -233,6 +233,12 @@ def refine_with_reference(
                                     "consistency_mean": float(fused.consistency.mean()),
                                     "image_normals": float(fused.image_normal_mask.float().mean()),
                                     "final_projection_moved": int(moved.sum())}
+    if config.max_displacement > 0:  # the optimiser's bound, over the stages after it too
+        from .optimize import bound_displacement
+
+        bounded = bound_displacement(result.points, points, config.max_displacement)
+        result.history["bounded_points"] = int(((bounded - result.points).norm(dim=1) > 0).sum())
+        result.points = bounded
     result.history["profile_s"] = {**result.history.get("profile_s", {}), **clock.seconds}
     result.history["profile_cpu_s"] = {**result.history.get("profile_cpu_s", {}), **clock.cpu_seconds}
     result.history["reference_calls"] = ref.calls

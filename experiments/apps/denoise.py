@@ -191,19 +191,43 @@ def score(pred: np.ndarray, clean: np.ndarray | None, mesh, protocols) -> dict:
     return evaluate_all(pred, clean, mesh, protocols)
 
 
+def interpolate_by_noise(table: dict, noise: float) -> float:
+    """The value of ``table`` ({noise level: value}) at ``noise``: piecewise linear in log(noise)
+    between the two levels around it (in log(value) too when every value is positive, so that a
+    rate or a count grows by a constant factor per factor of noise), the end values beyond the
+    table's range. Continuous in ``noise``: a cloud between two tuned levels gets settings between
+    theirs, never the nearest level's."""
+    levels = sorted(float(k) for k in table)
+    vals = [float(table[k]) for k in sorted(table, key=float)]
+    if not levels:
+        raise ValueError("an empty table")
+    if noise <= levels[0] or len(levels) == 1:
+        return vals[0]
+    if noise >= levels[-1]:
+        return vals[-1]
+    i = max(j for j in range(len(levels) - 1) if levels[j] <= noise)
+    t = (math.log(noise) - math.log(levels[i])) / (math.log(levels[i + 1]) - math.log(levels[i]))
+    a, b = vals[i], vals[i + 1]
+    if a > 0 and b > 0:
+        return float(math.exp((1 - t) * math.log(a) + t * math.log(b)))
+    return float((1 - t) * a + t * b)
+
+
 def resolve_by_noise(cfg: DictConfig, noise: float, key: str, cast=float) -> dict:
-    """Set ``cfg.optimizer.<key>`` when it is ``auto``: the ``<key>_by_noise`` entry nearest (in
-    log scale) to the noise level in use. Returns what was chosen and why (for metrics.json)."""
+    """Set ``cfg.optimizer.<key>`` when it is ``auto``: ``<key>_by_noise`` interpolated at the noise
+    level in use (:func:`interpolate_by_noise`; integers rounded). Returns what was chosen and why
+    (for metrics.json; ``exact``: the interpolated value before rounding)."""
     setting = cfg.optimizer[key]
     if str(setting) != "auto":
         return {"setting": cast(setting), "used": cast(setting)}
     name = f"{key}_by_noise"
-    table = {float(k): cast(v) for k, v in (cfg.get(name) or {}).items()}
+    table = {float(k): float(v) for k, v in (cfg.get(name) or {}).items()}
     if not table:
         raise ValueError(f"optimizer.{key}=auto needs {name} ({{noise level: value}})")
-    level = min(table, key=lambda lv: abs(np.log(lv) - np.log(noise)))
-    cfg.optimizer[key] = table[level]
-    return {"setting": "auto", "used": table[level], "noise": noise, "nearest_level": level, name: table}
+    exact = interpolate_by_noise(table, float(noise))
+    used = max(1, int(round(exact))) if cast is int else float(exact)
+    cfg.optimizer[key] = used
+    return {"setting": "auto", "used": used, "exact": exact, "noise": noise, name: table}
 
 
 #: optimiser settings that may be ``auto`` (taken from ``<key>_by_noise`` in conf/denoise.yaml)
@@ -215,6 +239,17 @@ def resolve_all_by_noise(cfg: DictConfig, noise: float, n_points: int | None = N
     """:func:`resolve_by_noise` for every :data:`BY_NOISE` key, then (given the point count)
     :func:`resolve_neighbourhood`; ``{key: note}``."""
     notes = {key: resolve_by_noise(cfg, noise, key, cast) for key, cast in BY_NOISE}
+    cyc, lr = notes["cycles"], notes["lr_points"]
+    if cyc["setting"] == "auto" and lr["setting"] == "auto" and cyc["exact"] != cyc["used"]:
+        # cycles are whole; the point rate takes the rounding so that cycles x rate (how far the
+        # regularisers move the points) stays continuous in the noise level
+        lr["used"] = cfg.optimizer.lr_points = float(cfg.optimizer.lr_points) * cyc["exact"] / cyc["used"]
+        lr["cycles_rounding"] = f"x {cyc['exact']:.3g} / {cyc['used']}"
+    if str(cfg.optimizer.get("max_displacement", 0)) == "auto":
+        # max_move noise levels (the noise is in bbox diagonals, the optimiser's frame)
+        cfg.optimizer.max_displacement = float(cfg.get("max_move", 0) or 0) * float(noise)
+        notes["max_displacement"] = {"setting": "auto", "used": float(cfg.optimizer.max_displacement),
+                                     "max_move": float(cfg.get("max_move", 0) or 0)}
     if n_points is not None:
         notes["reg_dilation"] = resolve_neighbourhood(cfg, n_points, notes.get("reg_cutoff"))
     return notes
