@@ -212,6 +212,7 @@ def release_claims() -> None:
 
     _claimed_dirs.clear()
     _claimed_outputs.clear()
+    _RUN.clear()
     while _claims:
         key, fd = _claims.popitem()
         if key in _remove_on_release:  # unlinked while still held: no other run can take it between
@@ -366,9 +367,9 @@ def _end_failed_run(e: BaseException, artefacts, unfinished=None) -> str | None:
     default ``artefacts``, and its output file) are removed, so none is left looking complete,
     and a run directory that this run created and that holds nothing but its records (a run
     refused at input) is removed. Returns a note for the console line, or None."""
-    unfinished = artefacts if unfinished is None else unfinished
     import shutil
 
+    unfinished = artefacts if unfinished is None else unfinished
     interrupted = isinstance(e, KeyboardInterrupt)
     run = _RUN.get("dir")
     if run is None and _claimed_dirs:  # called with a config (no Hydra): the run() claimed one
@@ -388,7 +389,8 @@ def _end_failed_run(e: BaseException, artefacts, unfinished=None) -> str | None:
                 path.unlink(missing_ok=True)
                 removed.append(str(path))
         note = f"removed this run's unfinished results ({len(removed)} files)" if removed else None
-    message = "interrupted" + (f": {note}" if note else "") if interrupted else f"error: {describe_error(e)}"
+    message = ("interrupted" + (f": {note}: {', '.join(removed)}" if note else "") if interrupted
+               else f"error: {describe_error(e)}")
     if run is not None and Path(run).is_dir():
         _log_to_run_files(40, message)
         created = _RUN.get("created")

@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from dss.pointcloud import PointCloud, PointCloudError, load_ply, save_ply
+from dss.pointcloud import PointCloudError, load_ply, save_ply
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 EXAMPLE = Path(__file__).resolve().parents[1] / "experiments" / "assets" / "example"
@@ -135,11 +135,11 @@ def test_render_and_deform_of_a_far_cloud_match_the_cloud_at_the_origin(tmp_path
     """dss-render draws the same images at 1e6 as at the origin (no lattice), and dss-deform's
     target at 1e6 is the origin's, so the deformation is the same."""
     import matplotlib.image
+    from scenes import sphere_points
 
     from experiments.apps.deform import load_target
     from experiments.apps.render import run as render_run
     from experiments.common import release_claims
-    from scenes import sphere_points
 
     p, n = sphere_points(800, 0.4)
     p = p.double().numpy()
