@@ -6,6 +6,7 @@ A cloud far from the origin (a georeferenced scan: coordinates of 1e6 with milli
 stored as doubles) does not fit float32, whose values are 0.06 apart at 1e6. :func:`load_ply`
 reads it in float64 and centres it there: ``points`` are then relative to ``offset``, a float64
 (3,) tensor, and :func:`save_ply` writes ``points + offset`` back as doubles in the file's frame.
+A cloud read from double coordinates is written as doubles too (``stored_as``).
 """
 
 from __future__ import annotations
@@ -66,12 +67,15 @@ class PointCloud:
 
     ``offset``: None, or a float64 (3,) tensor with the cloud's coordinates in its file being
     ``points + offset`` (a cloud far from the origin, centred on load; see the module docstring).
+    ``stored_as``: ``"float"`` or ``"double"``, the type its file holds the coordinates in
+    (what :func:`save_ply` writes them as; a cloud with an offset is written as doubles).
     """
 
     points: torch.Tensor
     normals: torch.Tensor | None = None
     colors: torch.Tensor | None = None
     offset: torch.Tensor | None = None
+    stored_as: str = "float"
 
     def __post_init__(self):
         self.points = _as_tensor(self.points)
@@ -88,6 +92,8 @@ class PointCloud:
                 setattr(self, name, v)
         if self.offset is not None:
             self.offset = torch.as_tensor(np.asarray(self.offset, np.float64).reshape(3))
+        if self.stored_as not in ("float", "double"):
+            raise ValueError(f"stored_as must be 'float' or 'double', got {self.stored_as!r}")
 
     def __len__(self) -> int:
         return self.points.shape[0]
@@ -181,7 +187,18 @@ def centred_cloud(points, normals=None, colors=None, centre: bool | str = "auto"
     kept). ``source`` names the data in errors (all points identical)."""
     p = np.asarray(points, np.float64)
     offset = _frame(source, p, "double", centre)
-    return PointCloud((p if offset is None else p - offset).astype(np.float32), normals, colors, offset)
+    return PointCloud((p if offset is None else p - offset).astype(np.float32), normals, colors, offset,
+                      _stored_as(p, "double"))
+
+
+def _stored_as(points: np.ndarray, coordinates: str) -> str:
+    """``"double"`` when the coordinates came as doubles that float32 does not hold exactly (a
+    binary file's double properties, or text and other readers' values with more digits)."""
+    if coordinates == "float":
+        return "float"
+    with np.errstate(over="ignore", invalid="ignore"):
+        exact = np.array_equal(points.astype(np.float32).astype(np.float64), points, equal_nan=True)
+    return "float" if exact else "double"
 
 
 def load_ply(
@@ -269,13 +286,14 @@ def load_ply(
             raise PointCloudError(f"{path}: {len(points)} points are too few to estimate normals")
         log.info("%s: no normals in the file, estimating them by PCA (k=%d)", path, normals_k)
         normals = estimate_normals(points, k=normals_k)
-    return PointCloud(points, normals, colors, offset)
+    return PointCloud(points, normals, colors, offset, _stored_as(arrays.points, arrays.coordinates))
 
 
 def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False, exclusive: bool = False) -> Path:
     """Write ``cloud`` atomically as a binary little-endian (or ``ascii``) PLY (:func:`dss.ply.write_ply`);
-    returns the path written. Coordinates as float, or, for a cloud with an ``offset``,
-    ``points + offset`` as double (the file's frame, to the precision it came in); normals as
+    returns the path written. Coordinates as float, or as double for a cloud read from doubles
+    (``stored_as``) or with an ``offset`` (then ``points + offset``: the file's frame, to the
+    precision it came in); normals as
     float, colours as uchar. ``exclusive``: never replace an existing file (see
     :class:`dss.io_utils.atomic_path`)."""
     if len(cloud) == 0:
@@ -283,7 +301,7 @@ def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False, ex
     return write_ply(path, cloud.coordinates() if cloud.offset is not None else cloud.points.detach().cpu().float().numpy(),
                      None if cloud.normals is None else cloud.normals.detach().cpu().float().numpy(),
                      None if cloud.colors is None else cloud.colors.detach().cpu().double().numpy(),
-                     double=cloud.offset is not None, ascii=ascii, exclusive=exclusive)
+                     double=cloud.offset is not None or cloud.stored_as == "double", ascii=ascii, exclusive=exclusive)
 
 def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.Tensor:
     """PCA normals (Hoppe et al. 1992) over the ``k`` nearest neighbours (the point included),

@@ -69,10 +69,12 @@ def _denoise(case, offset: float, seed: int, root: Path) -> tuple[float, dict]:
 def test_an_offset_of_1e6_or_1e8_gives_the_result_at_the_origin(small_case, tmp_path):
     """The same 3,000-point cloud at the origin and shifted by 1e6 and 1e8 (stored as doubles):
     the denoised files, read back in their own coordinates, score as the origin's result does,
-    within the spread of two seeds at the origin, and the output is written as doubles."""
+    within the spread of two seeds at the origin, and the outputs are written as doubles."""
     c0, m0 = _denoise(small_case, 0.0, 0, tmp_path)
     c1, _ = _denoise(small_case, 0.0, 1, tmp_path)
     spread = abs(c0 - c1)
+    # a double input is written as doubles, at the origin too
+    assert "property double x" in Path(m0["output"]).read_bytes()[:300].decode("ascii", errors="replace")
     for offset in (1e6, 1e8):
         c, m = _denoise(small_case, offset, 0, tmp_path)
         assert abs(c - c0) <= spread, (offset, c, c0, spread)

@@ -248,7 +248,9 @@ def run(cfg: DictConfig) -> dict:
     snaps[final_step] = _snapshot(result.points, result.normals, snap_cams, settings, cfg.shading, backend)
 
     # normalize=false: in the target's own frame (a target centred on load gets its offset back)
-    save_ply(out / "final.ply", PointCloud(result.points, result.normals, offset=None if cfg.normalize else target.offset))
+    own = not cfg.normalize
+    save_ply(out / "final.ply", PointCloud(result.points, result.normals, offset=target.offset if own else None,
+                                           stored_as=target.stored_as if own else "float"))
     (out / "snapshots").mkdir(exist_ok=True)
     for step, img in sorted(snaps.items()):
         save_png(out / "snapshots" / f"step_{step:04d}.png", img)

@@ -740,8 +740,8 @@ def run(cfg: DictConfig) -> dict:
     with clock("write"):
         nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
         # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
-        # in the input's frame and precision: a cloud centred on load gets its offset back (as doubles)
-        output = save_ply(output, PointCloud(pts, nrm, offset=cloud.offset), exclusive=not cfg.get("overwrite", False))
+        # in the input's frame and precision: a cloud centred on load gets its offset back, doubles stay doubles
+        output = save_ply(output, PointCloud(pts, nrm, offset=cloud.offset, stored_as=cloud.stored_as), exclusive=not cfg.get("overwrite", False))
         if removed is not None:
             outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
 

@@ -125,7 +125,7 @@ def run(cfg: DictConfig) -> dict:
                                                         f"dss-filter ({generator.name})", shading=shading)
     t_opt = time.perf_counter() - t0
     # in the input's frame (a cloud centred on load gets its offset back, as doubles)
-    output = save_ply(output, PointCloud(pts, nrm, offset=cloud.offset), exclusive=not cfg.get("overwrite", False))
+    output = save_ply(output, PointCloud(pts, nrm, offset=cloud.offset, stored_as=cloud.stored_as), exclusive=not cfg.get("overwrite", False))
 
     # How far the geometry moved (input as the reference, paper protocol units).
     moved = evaluate(pts.numpy(), points.numpy(), None, "paper").to_dict()
