@@ -86,7 +86,7 @@ from torch.autograd.function import once_differentiable
 
 from dss._ext import build_error, load_cpu
 from dss.knn import Neighbors, gather_neighbors, knn
-from dss.pointcloud import all_finite
+from dss.pointcloud import all_finite, bbox_diagonal  # bbox_diagonal: re-exported
 
 logger = logging.getLogger(__name__)
 
@@ -112,14 +112,6 @@ REPULSION_EPS = 1e-4
 
 
 # ----------------------------------------------------------------------------- bandwidths
-
-
-def bbox_diagonal(points: torch.Tensor) -> float:
-    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
-    if points.shape[0] == 0:
-        return 0.0
-    p = points.detach()
-    return float((p.max(0).values - p.min(0).values).norm())
 
 
 def default_bandwidth(diag: float, n: int) -> float:

@@ -73,16 +73,27 @@ from .metrics import l1 as l1_metric
 from .metrics import planes_inverse_depth, planes_metric_sums, surface_pixels
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered, generator_from_config
+from .networks import (
+    PatchDiscriminator,
+    ResNetGenerator,
+    apply_coverage,
+    covered,
+    generator_from_config,
+)
 from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "load_generator_weights", "CHECKPOINT_KEY",
-           "make_grid"]
+           "make_grid", "NonFiniteLossError"]
 
 CHECKPOINT_KEY = "dss_pix2pix"
 METRIC_NAMES = ("l1", "smape", "psnr")
+
+
+class NonFiniteLossError(ValueError):
+    """A training loss or validation metric is NaN or inf: training stops at once (a NaN model
+    would otherwise train on, be checkpointed and exported)."""
 
 
 class LinearDecay:
@@ -235,6 +246,7 @@ class Pix2PixModule(L.LightningModule):
             pred_fake = self.discriminator(self._d_input(noisy, fake.detach()))
             loss_d = 0.5 * (F.mse_loss(pred_real, torch.ones_like(pred_real))
                             + F.mse_loss(pred_fake, torch.zeros_like(pred_fake)))
+            self._check_finite("train/loss_d", loss_d, batch, batch_idx)
             opt_d.zero_grad(set_to_none=True)
             self.manual_backward(loss_d)
             opt_d.step()
@@ -265,6 +277,7 @@ class Pix2PixModule(L.LightningModule):
             loss_gan = F.mse_loss(pred, torch.ones_like(pred))
             loss_g = loss_g + self.hparams.lambda_gan * loss_gan
             logs["train/loss_g_gan"] = loss_gan.detach()
+        self._check_finite("train/loss_g", loss_g, batch, batch_idx)
         opt_g.zero_grad(set_to_none=True)
         self.manual_backward(loss_g)
         opt_g.step()
@@ -277,6 +290,16 @@ class Pix2PixModule(L.LightningModule):
         self._throughput[0] += noisy.shape[0]
         self._throughput[1] += time.perf_counter() - t0
         return loss_g.detach()
+
+    def _check_finite(self, name: str, loss: torch.Tensor, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        """Stop before a non-finite loss reaches the weights, saying whether the batch was to blame."""
+        if bool(torch.isfinite(loss)):
+            return
+        bad = [k for k in ("noisy", "clean") if not bool(torch.isfinite(batch[k]).all())]
+        cause = (f"the batch's {' and '.join(bad)} images hold NaN/inf pixels (corrupt training data)" if bad
+                 else "the model diverged (lower model.lr, or check the data)")
+        raise NonFiniteLossError(f"{name} = {float(loss)} at epoch {self.current_epoch}, global step "
+                                 f"{self.global_step}, batch {batch_idx}: {cause}; training stopped")
 
     def on_train_epoch_start(self) -> None:
         # Lightning calls set_epoch only on samplers; our iterable stream reshuffles per epoch.
@@ -355,6 +378,12 @@ class Pix2PixModule(L.LightningModule):
         means.update(_planes_means(planes))
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
+        bad = sorted(k for k in ("l1", "smape", "noisy_l1", "noisy_smape") if not np.isfinite(means[k]))
+        if bad:
+            raise NonFiniteLossError(f"validation metrics are not finite ({', '.join(f'val/{k} = {means[k]}' for k in bad)}) "
+                                     f"at epoch {self.current_epoch}: "
+                                     + ("the validation data holds NaN/inf pixels" if any(k.startswith("noisy") for k in bad)
+                                        else "the model's output is not finite (it diverged)"))
         means["l1_reduction"] = 1.0 - means["l1"] / max(means["noisy_l1"], 1e-12)
         means["psnr_gain"] = means["psnr"] - means["noisy_psnr"]
         if cov[0] is not None:
