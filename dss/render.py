@@ -151,6 +151,22 @@ class RenderOutput:
         the caller's order when it is None): for per-point reductions that permute back once."""
         return self._sorted
 
+    def seen(self, in_render_order: bool = False) -> torch.Tensor:
+        """(V, N) bool: point k is among the visible entries (within the merge threshold of the
+        front) of at least one pixel of view v. In the caller's point order, or with
+        ``in_render_order`` in ``point_order``'s (for per-point reductions that permute back once)."""
+        frags, splats, _ = self._sorted
+        V, N = splats.packed.shape[:2]
+        flat = frags.idx.long() + (torch.arange(V, device=frags.idx.device) * N)[:, None, None, None]
+        seen = torch.zeros(V * N, dtype=torch.bool, device=flat.device)
+        seen[flat[frags.visible]] = True
+        seen = seen.view(V, N)
+        if in_render_order or self.point_order is None:
+            return seen
+        caller = torch.empty_like(seen)
+        caller[:, self.point_order] = seen  # sorted position j holds caller point point_order[j]
+        return caller
+
     @property
     def fragments(self) -> Fragments:
         return self._in_caller_order()[0]

@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 # __len__ is exact with any number of workers; Lightning warns about the general case.
 warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined")
 
-__all__ = ["run", "main", "instantiate_callbacks", "instantiate_loggers"]
+__all__ = ["run", "main", "instantiate_all"]
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
@@ -44,15 +44,8 @@ def _atomic_text(path: Path, text: str) -> None:
     atomic_write_text(path, text)
 
 
-def instantiate_callbacks(cfg: DictConfig | None) -> list:
-    """Every ``_target_`` entry of the ``callbacks`` group, in order."""
-    if not cfg:
-        return []
-    return [hydra.utils.instantiate(c) for _, c in cfg.items() if isinstance(c, DictConfig) and "_target_" in c]
-
-
-def instantiate_loggers(cfg: DictConfig | None) -> list:
-    """Every ``_target_`` entry of the ``logger`` group, in order."""
+def instantiate_all(cfg: DictConfig | None) -> list:
+    """Every ``_target_`` entry of a group node of named entries (``callbacks``, ``logger``), in order."""
     if not cfg:
         return []
     return [hydra.utils.instantiate(c) for _, c in cfg.items() if isinstance(c, DictConfig) and "_target_" in c]
@@ -80,8 +73,9 @@ def _check_data(node) -> None:
                                 "or point data.root=<dir> at a dss-prep output")
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train (or resume) per ``cfg``; returns (and writes to metrics.json) the results.
+def run(cfg: DictConfig, extra_callbacks: list | tuple = ()) -> dict[str, Any]:
+    """Train (or resume) per ``cfg``, with the ``callbacks`` group's Lightning callbacks and
+    ``extra_callbacks``; returns (and writes to metrics.json) the results.
 
     Returns a dict with ``metrics`` (last logged values), ``best_val`` (validation of the best
     checkpoint: output vs clean and the noisy baseline), ``best_ckpt``, ``last_ckpt``,
@@ -104,8 +98,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     log.info("data: %s", cfg.data.get("_target_"))
     datamodule = hydra.utils.instantiate(cfg.data)
     model = hydra.utils.instantiate(cfg.model)
-    callbacks = instantiate_callbacks(cfg.get("callbacks"))
-    loggers = instantiate_loggers(cfg.get("logger"))
+    callbacks = instantiate_all(cfg.get("callbacks")) + list(extra_callbacks)
+    loggers = instantiate_all(cfg.get("logger"))
     if not loggers:
         dropped = [c for c in callbacks if isinstance(c, LearningRateMonitor)]
         if dropped:
