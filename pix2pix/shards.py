@@ -1,4 +1,4 @@
-"""Reading the training-pair dataset format ``dss-pairs/1`` (see notes/SHARDS.md).
+"""Reading the training-pair dataset format ``dss-pairs/1`` (data_prep/README.md, "Dataset formats").
 
 A dataset is ``<root>/manifest.json`` plus uncompressed ``.npz`` shards holding ``noisy`` and
 ``clean`` (n, H, W, 3) float16 renders, ``mask`` (n, H, W) bool and ``pair_id`` (n,) int64.
