@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from experiments.apps.train import instantiate_all, run
 from pix2pix.datamodule import PairStream, Pix2PixDataModule
-from pix2pix.module import Pix2PixModule
+from pix2pix.module import GRID_MIN_TILE, Pix2PixModule
 from pix2pix.networks import PatchDiscriminator, ResNetGenerator
 
 try:
@@ -100,6 +100,19 @@ def test_group_options_instantiate(group, tmp_path, wandb_offline_env):
         else:
             cbs = instantiate_all(cfg.get("callbacks"))
             assert (len(cbs) == 0) == (option == "none")
+
+
+def test_the_quick_path_stops_on_its_time_budget(tmp_path):
+    """experiment=quick (the README's quick path): the tiny model on dss-prep's tiny dataset, and
+    trainer.max_time ends the run, not max_epochs (the trainer group's 10 would end it first)."""
+    cfg = compose_train(["experiment=quick", f"output_dir={tmp_path}"])
+    assert cfg.model.name == "tiny" and cfg.data.root == "data/pairs-tiny" and cfg.data.noise_level == 0.01
+    assert cfg.torch_threads == 1 and cfg.trainer.max_time == "00:00:05:00"
+    trainer = hydra.utils.instantiate(cfg.trainer, logger=False, callbacks=[])
+    # a 32 px tiny dataset runs thousands of epochs in 5 minutes: only the time limit stops it
+    assert trainer.max_epochs >= 10_000
+    short = compose_train(["experiment=quick", "trainer.max_time=00:00:02:00", f"output_dir={tmp_path}"])
+    assert short.trainer.max_time == "00:00:02:00"
 
 
 @pytest.mark.parametrize("exp,level", [("noise_0.3pct", 0.003), ("noise_1pct", 0.01),
@@ -373,7 +386,8 @@ def test_run_dir_contents_and_export(trained_run):
     import matplotlib.image
 
     img = matplotlib.image.imread(grids[-1])
-    assert img.shape[:2] == (2 * 32, 3 * 32)  # 2 images, rows of noisy | output | clean
+    s = -(-GRID_MIN_TILE // 32)  # 32 px renders, enlarged to be seen
+    assert img.shape[:2] == (24 + 2 * 32 * s, 3 * 32 * s)  # a header, 2 images, columns noisy | output | clean
     bv = metrics["best_val"]
     for k in ("val/l1", "val/smape", "val/psnr", "val/noisy_l1", "val/noisy_smape",
               "val/noisy_psnr", "val/smape_reduction"):
