@@ -41,9 +41,8 @@ __all__ = ["load_cpu", "cpu_available", "build_error", "openmp_enabled", "build_
 _build_seconds = [0.0]  # compile time spent in this process (s)
 #: seconds between two progress lines of a compile
 PROGRESS_EVERY_S = 15.0
-#: what a first compile costs (dss_cpu, measured: 44 s wall on an idle 2-core machine, about 200 s on a
-#: busy one; docs/performance.md "How the kernels are built for speed")
-BUILD_TIME = "about 45 s on an idle 2-core machine, a few minutes on a busy one"
+#: what the first compile of dss_cpu costs (wall time; docs/performance.md "The first build")
+BUILD_TIME = "44 s on an idle 2-core machine, about 200 s on a busy one"
 
 
 # -ffp-contract=off: no fused multiply-adds, so the kernels round as the torch expressions they
@@ -96,11 +95,12 @@ def _stage(name: str, files: list[Path]) -> Path:
 
 def load_hashed(base: str, sources: list[Path], headers: list[Path] = (), *, extra_cflags: list[str] = (),
                 extra_ldflags: list[str] = (), extra_cuda_cflags: list[str] | None = None,
-                what: str = "the C++ kernel", **kw):
+                what: str = "the C++ kernel", expected: str | None = None, **kw):
     """``torch.utils.cpp_extension.load`` under :func:`hashed_name`, from staged sources.
 
-    When the module is not built yet (a first-use compile) logs a line, then the elapsed time
-    every :data:`PROGRESS_EVERY_S`, and adds the build's duration to :func:`build_seconds`.
+    When the module is not built yet (a first-use compile) logs a line (with ``expected``, what
+    such a build takes), then the elapsed time every :data:`PROGRESS_EVERY_S`, and adds the
+    build's duration to :func:`build_seconds`.
     """
     from torch.utils.cpp_extension import LIB_EXT, load
 
@@ -110,7 +110,8 @@ def load_hashed(base: str, sources: list[Path], headers: list[Path] = (), *, ext
     src = _stage(name, sources + headers)
     compiling = not (_build_dir(name) / f"{name}{LIB_EXT}").exists()
     if compiling:
-        log.warning("compiling %s (%s) once, cached in %s: %s", what, name, _build_dir(name), BUILD_TIME)
+        log.warning("compiling %s (%s) once, cached in %s%s", what, name, _build_dir(name),
+                    f" ({expected})" if expected else "")
     t0 = time.perf_counter()
     try:
         with _progress(what, t0) if compiling else contextlib.nullcontext():
@@ -158,7 +159,7 @@ def _build(name: str, sources: list[Path], **kw):
 
     def _load(mod_name: str, omp: bool):
         return load_hashed(mod_name, sources, _headers(), extra_cflags=_BASE_CFLAGS + (_OPENMP_FLAGS if omp else []),
-                           extra_ldflags=_OPENMP_FLAGS if omp else [], **kw)
+                           extra_ldflags=_OPENMP_FLAGS if omp else [], expected=BUILD_TIME, **kw)
 
     if not os.environ.get("DSS_DISABLE_OPENMP"):
         try:

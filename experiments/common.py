@@ -102,8 +102,8 @@ def describe_device(dev) -> str:
 def prepare_kernels(device=None) -> float:
     """Build (or load) the compiled kernels a run will use, before its timed work starts.
 
-    A first-use compile (44 s on an idle 2-core machine, minutes on a busy one) happens once per
-    machine; it is no part of a run's cost, so the apps report it apart (``time_s.kernel_build``)
+    A first-use compile (44 s on an idle 2-core machine, about 200 s on a busy one) happens once
+    per machine; it is no part of a run's cost, so the apps report it apart (``time_s.kernel_build``)
     and leave it out of their totals. Returns the seconds this run has spent compiling: since the
     run's start (:class:`JobStart` marks it when Hydra runs the app), so a compile that an earlier
     step of the run (reading the input, estimating its normals) started is counted too; without a
