@@ -124,6 +124,18 @@ APPS: dict[str, App] = {
          ("methods=[cgal_jet,dss_identity]", "the methods to run (default: all)"),
          ("out_dir=DIR", "an earlier run's folder: resume it"),
          ("publish=true", "also copy the summary to its place under results/"))),
+    "real_bench": App(
+        "dss-real-bench", "experiments.evaluation.real_benchmark",
+        "dss-denoise against the best classical result per case on real meshes (Debian's "
+        "libcgal-demo, installed by `dss-data real`): sample and perturb each mesh at each point count, "
+        "noise level and seed, run DSS and every classical method with a few parameters, and report "
+        "the lowest value per metric; writes report.md and report.json into "
+        "outputs/dss-real-bench/<date>/; resumable.",
+        (("groups=[tuning]", "the shape groups of data_prep/real_split.yaml (tuning, held_out, open)"),
+         ("points=[20000]", "point counts per clean cloud"),
+         ("noise=[0.005,0.01]", "noise levels (fraction of the bbox diagonal)"),
+         ("seeds=[0]", "sampling and noise draws"),
+         ("out_dir=DIR", "an earlier run's folder: resume it"))),
     "sweep": App(
         "dss-sweep", "experiments.evaluation.sweep",
         "Stability sweeps and the budget study: vary one setting at a time (noise, density, outliers, "
