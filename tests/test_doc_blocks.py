@@ -64,6 +64,15 @@ def test_publish_rewrites_a_stale_block_and_check_fails_until_then(tmp_path, cap
     assert "| jet | **0.123** |" in (repo / "README.md").read_text()
 
 
+def test_markers_in_a_code_block_are_an_example_not_a_block(tmp_path):
+    body = "# Title\n\n```\n" + MARKER + "<!-- end generated -->\n```\n\n" + MARKER + "<!-- end generated -->\n"
+    repo = _repo(tmp_path, body)
+    assert [b.line for b in doc_blocks.find_blocks(repo / "README.md")] == [9]
+    doc_blocks.update(repo, write=True)
+    text = (repo / "README.md").read_text()
+    assert text.startswith("# Title\n\n```\n" + MARKER + "<!-- end generated -->\n```\n") and text.count("| jet |") == 1
+
+
 @pytest.mark.parametrize("body, message", [
     ("<!-- generated: nosuch " + BUDGETS + " -->\n<!-- end generated -->\n", "unknown generator 'nosuch'"),
     ("<!-- generated: denoise_methods results/none.json methods=a columns=mean_cd -->\n<!-- end generated -->\n",

@@ -78,11 +78,23 @@ class Block:
     end: int
 
 
+FENCE = re.compile(r"^ *(```|~~~)", re.M)
+
+
+def _in_code(text: str, pos: int) -> bool:
+    """Whether ``pos`` lies inside a fenced code block (an example of the markers, not a block)."""
+    return len(FENCE.findall(text, 0, pos)) % 2 == 1
+
+
 def find_blocks(path: Path) -> list[Block]:
-    """The generated blocks of a markdown file (ValueError naming file and line for a malformed one)."""
+    """The generated blocks of a markdown file (ValueError naming file and line for a malformed
+    one); markers inside fenced code blocks are text."""
     text = Path(path).read_text()
     blocks, pos = [], 0
     while (m := BEGIN.search(text, pos)) is not None:
+        if _in_code(text, m.start()):
+            pos = m.end()
+            continue
         line = text.count("\n", 0, m.start()) + 1
         where = f"{path}:{line}"
         try:
