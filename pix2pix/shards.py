@@ -1,4 +1,5 @@
-"""Reading the training-pair dataset format ``dss-pairs/1`` (written by :mod:`data_prep.shards`).
+"""Reading the training-pair dataset format ``dss-pairs/1`` (written by :mod:`data_prep.shards`;
+data_prep/README.md, "Dataset formats").
 
 A dataset is ``<root>/manifest.json`` plus uncompressed ``.npz`` shards holding ``noisy`` and
 ``clean`` (n, H, W, 3) float16 renders, ``mask`` (n, H, W) bool and ``pair_id`` (n,) int64.

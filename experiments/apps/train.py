@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 # __len__ is exact with any number of workers; Lightning warns about the general case.
 warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined")
 
-__all__ = ["run", "main", "instantiate_callbacks", "instantiate_loggers", "ARTEFACTS", "claim_run"]
+__all__ = ["run", "main", "instantiate_all", "ARTEFACTS", "claim_run"]
 
 #: what a run writes into its output directory (an earlier run's are refused, or removed with
 #: overwrite=true: experiments.common.claim_run_dir)
@@ -83,15 +83,8 @@ def _atomic_text(path: Path, text: str) -> None:
     atomic_write_text(path, text)
 
 
-def instantiate_callbacks(cfg: DictConfig | None) -> list:
-    """Every ``_target_`` entry of the ``callbacks`` group, in order."""
-    if not cfg:
-        return []
-    return [hydra.utils.instantiate(c) for _, c in cfg.items() if isinstance(c, DictConfig) and "_target_" in c]
-
-
-def instantiate_loggers(cfg: DictConfig | None) -> list:
-    """Every ``_target_`` entry of the ``logger`` group, in order."""
+def instantiate_all(cfg: DictConfig | None) -> list:
+    """Every ``_target_`` entry of a group node of named entries (``callbacks``, ``logger``), in order."""
     if not cfg:
         return []
     return [hydra.utils.instantiate(c) for _, c in cfg.items() if isinstance(c, DictConfig) and "_target_" in c]
@@ -119,8 +112,9 @@ def _check_data(node) -> None:
                                 "or point data.root=<dir> at a dss-prep output")
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train (or resume) per ``cfg``; returns (and writes to metrics.json) the results.
+def run(cfg: DictConfig, extra_callbacks: list | tuple = ()) -> dict[str, Any]:
+    """Train (or resume) per ``cfg``, with the ``callbacks`` group's Lightning callbacks and
+    ``extra_callbacks``; returns (and writes to metrics.json) the results.
 
     Returns a dict with ``metrics`` (last logged values), ``best_val`` (validation of the best
     checkpoint: output vs clean and the noisy baseline), ``best_ckpt``, ``last_ckpt``,
@@ -134,12 +128,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
     claim_run(cfg, out_dir)
     try:
-        return _run(cfg, out_dir, ckpt_path)
+        return _run(cfg, out_dir, ckpt_path, extra_callbacks)
     finally:
         release_claims()
 
 
-def _run(cfg: DictConfig, out_dir: Path, ckpt_path) -> dict[str, Any]:
+def _run(cfg: DictConfig, out_dir: Path, ckpt_path, extra_callbacks=()) -> dict[str, Any]:
     import lightning as L
     import torch
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
@@ -154,8 +148,8 @@ def _run(cfg: DictConfig, out_dir: Path, ckpt_path) -> dict[str, Any]:
     model = _instantiate(cfg.model, "model")
     out_dir.mkdir(parents=True, exist_ok=True)
     _atomic_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
-    callbacks = instantiate_callbacks(cfg.get("callbacks"))
-    loggers = instantiate_loggers(cfg.get("logger"))
+    callbacks = instantiate_all(cfg.get("callbacks")) + list(extra_callbacks)
+    loggers = instantiate_all(cfg.get("logger"))
     if not loggers:
         dropped = [c for c in callbacks if isinstance(c, LearningRateMonitor)]
         if dropped:
