@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .render_spec import RenderSpec
-from .shards import PrepConfig, build_plan, npz_bytes, package_version
+from .shards import PrepConfig, build_plan, manifest_header, npz_bytes
 
 log = logging.getLogger(__name__)
 
@@ -86,19 +86,7 @@ def generate_clouds(pc: PrepConfig, spec: RenderSpec, out_dir, overwrite: bool =
     finally:
         torch.set_num_threads(prev)
     manifest = {
-        "format": CLOUDS_FORMAT,
-        "package_version": package_version(),
-        "image_size": list(spec.image_size),
-        "channels": 3,
-        "noise_levels": list(pc.noise_levels),
-        "render": spec.to_dict(include_backend=False),
-        "seed": pc.seed,
-        "fingerprint": plan.fingerprint,
-        "config": {"families": list(pc.families), "shapes_per_family": pc.shapes_per_family,
-                   "resolution": pc.resolution, "num_points": pc.num_points, "init_factor": pc.init_factor,
-                   "normals_k": pc.normals_k, "normals_orient": pc.normals_orient,
-                   "views_per_shape": pc.views_per_shape,
-                   "splits": {"val": pc.val_fraction, "test": pc.test_fraction}},
+        **manifest_header(plan, CLOUDS_FORMAT),
         "splits": {sp: sum(1 for s in shapes if s["split"] == sp) for sp in ("train", "val", "test")},
         "shapes": shapes,
     }

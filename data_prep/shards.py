@@ -1,8 +1,8 @@
 """Writing a ``dss-pairs/1`` dataset: plan, shards, completion markers, manifest.
 
-Format (notes/SHARDS.md): ``<root>/manifest.json`` plus ``<root>/<split>/shard-XXXXX.npz``
-(uncompressed; ``noisy``/``clean`` (n,H,W,3) float16, ``mask`` (n,H,W) bool, ``pair_id`` (n,)
-int64).
+Format (data_prep/README.md, "Dataset formats"): ``<root>/manifest.json`` plus
+``<root>/<split>/shard-XXXXX.npz`` (uncompressed; ``noisy``/``clean`` (n,H,W,3) float16, ``mask``
+(n,H,W) bool, ``pair_id`` (n,) int64).
 
 Properties:
 
@@ -483,6 +483,30 @@ def _worker_init():
 
 # ----------------------------------------------------------------------------- manifest
 
+def manifest_header(plan: Plan, fmt: str, versions: Mapping[str, Any] = (), config_extra: Mapping[str, Any] = ()) -> dict:
+    """The keys every dataset manifest of ``plan`` starts with (``dss-pairs/1`` here,
+    ``dss-clouds/1`` in :mod:`data_prep.clouds`): format, versions, render setting, seed,
+    fingerprint and the config the shapes came from. ``versions`` follow ``package_version``,
+    ``config_extra`` the config's ``views_per_shape``."""
+    pc, spec = plan.config, plan.spec
+    return {
+        "format": fmt,
+        "package_version": package_version(),
+        **dict(versions),
+        "image_size": list(spec.image_size),
+        "channels": 3,
+        "noise_levels": list(pc.noise_levels),
+        "render": spec.to_dict(include_backend=False),
+        "seed": pc.seed,
+        "fingerprint": plan.fingerprint,
+        "config": {"families": list(pc.families), "shapes_per_family": pc.shapes_per_family,
+                   "resolution": pc.resolution, "num_points": pc.num_points, "init_factor": pc.init_factor,
+                   "normals_k": pc.normals_k, "normals_orient": pc.normals_orient,
+                   "views_per_shape": pc.views_per_shape, **dict(config_extra),
+                   "splits": {"val": pc.val_fraction, "test": pc.test_fraction}},
+    }
+
+
 def build_manifest(plan: Plan, markers: Mapping[str, dict]) -> dict:
     pc, spec = plan.config, plan.spec
     shards, pairs = [], []
@@ -502,20 +526,8 @@ def build_manifest(plan: Plan, markers: Mapping[str, dict]) -> dict:
     split_stats = {sp: {"shapes": sum(1 for x in plan.shapes if x.split == sp),
                         "pairs": sum(s.num_pairs for s in plan.shards if s.split == sp)} for sp in SPLITS}
     return {
-        "format": FORMAT,
-        "package_version": package_version(),
-        "generator_version": GENERATOR_VERSION,
-        "image_size": list(spec.image_size),
-        "channels": 3,
-        "noise_levels": list(pc.noise_levels),
-        "render": spec.to_dict(include_backend=False),
-        "seed": pc.seed,
-        "fingerprint": plan.fingerprint,
-        "config": {"families": list(pc.families), "shapes_per_family": pc.shapes_per_family,
-                   "resolution": pc.resolution, "num_points": pc.num_points, "init_factor": pc.init_factor,
-                   "normals_k": pc.normals_k, "normals_orient": pc.normals_orient,
-                   "views_per_shape": pc.views_per_shape, "shapes_per_shard": pc.shapes_per_shard,
-                   "splits": {"val": pc.val_fraction, "test": pc.test_fraction}},
+        **manifest_header(plan, FORMAT, {"generator_version": GENERATOR_VERSION},
+                          {"shapes_per_shard": pc.shapes_per_shard}),
         "splits": split_stats,
         "num_pairs": plan.num_pairs,
         "shapes": [{"shape_id": x.shape_id, "family": x.family, "seed": x.seed, "split": x.split} for x in plan.shapes],

@@ -5,14 +5,16 @@ The extension is compiled once with ``torch.utils.cpp_extension.load`` (ninja) a
 the sources, headers, flags, torch and Python (``dss_cpu_<hash>``), and it is built from a copy
 of the sources kept beside the build, so two installs on one machine (two clones, a worktree,
 a second venv) with the same kernel share one build, and installs with different kernels keep
-one build each instead of rebuilding each other's. A first-use compile logs one line; its
-duration is kept (:func:`build_seconds`) so that the apps can leave it out of their timings.
+one build each instead of rebuilding each other's. A first-use compile logs a line when it
+starts, one every 15 s with the elapsed time, and one when it ends; its duration is kept
+(:func:`build_seconds`) so that the apps can leave it out of their timings.
 A failed build (no compiler, no ninja) warns once; callers then fall back to the pure-torch
 reference.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -37,6 +39,10 @@ _failed: dict[str, str] = {}
 __all__ = ["load_cpu", "cpu_available", "build_error", "openmp_enabled", "build_seconds", "hashed_name",
            "load_hashed"]
 _build_seconds = [0.0]  # compile time spent in this process (s)
+#: seconds between two progress lines of a compile
+PROGRESS_EVERY_S = 15.0
+#: what the first compile of dss_cpu costs (wall time; docs/performance.md "The first build")
+BUILD_TIME = "44 s on an idle 2-core machine, about 200 s on a busy one"
 
 
 # -ffp-contract=off: no fused multiply-adds, so the kernels round as the torch expressions they
@@ -89,11 +95,12 @@ def _stage(name: str, files: list[Path]) -> Path:
 
 def load_hashed(base: str, sources: list[Path], headers: list[Path] = (), *, extra_cflags: list[str] = (),
                 extra_ldflags: list[str] = (), extra_cuda_cflags: list[str] | None = None,
-                what: str = "the C++ kernel", **kw):
+                what: str = "the C++ kernel", expected: str | None = None, **kw):
     """``torch.utils.cpp_extension.load`` under :func:`hashed_name`, from staged sources.
 
-    Logs one line when the module is not built yet (a first-use compile) and adds the build's
-    duration to :func:`build_seconds`.
+    When the module is not built yet (a first-use compile) logs a line (with ``expected``, what
+    such a build takes), then the elapsed time every :data:`PROGRESS_EVERY_S`, and adds the
+    build's duration to :func:`build_seconds`.
     """
     from torch.utils.cpp_extension import LIB_EXT, load
 
@@ -103,16 +110,38 @@ def load_hashed(base: str, sources: list[Path], headers: list[Path] = (), *, ext
     src = _stage(name, sources + headers)
     compiling = not (_build_dir(name) / f"{name}{LIB_EXT}").exists()
     if compiling:
-        log.warning("compiling %s (%s), about 30 s, once: cached in %s", what, name, _build_dir(name))
+        log.warning("compiling %s (%s) once, cached in %s%s", what, name, _build_dir(name),
+                    f" ({expected})" if expected else "")
     t0 = time.perf_counter()
     try:
-        return load(name=name, sources=[str(src / s.name) for s in sources], extra_cflags=list(extra_cflags),
-                    extra_ldflags=list(extra_ldflags), extra_include_paths=[str(src)],
-                    verbose=bool(os.environ.get("DSS_VERBOSE_BUILD")),
-                    **({"extra_cuda_cflags": list(extra_cuda_cflags)} if extra_cuda_cflags else {}), **kw)
+        with _progress(what, t0) if compiling else contextlib.nullcontext():
+            return load(name=name, sources=[str(src / s.name) for s in sources], extra_cflags=list(extra_cflags),
+                        extra_ldflags=list(extra_ldflags), extra_include_paths=[str(src)],
+                        verbose=bool(os.environ.get("DSS_VERBOSE_BUILD")),
+                        **({"extra_cuda_cflags": list(extra_cuda_cflags)} if extra_cuda_cflags else {}), **kw)
     finally:
         if compiling:
             _build_seconds[0] += time.perf_counter() - t0
+            log.warning("compiling %s: done after %.0f s", what, time.perf_counter() - t0)
+
+
+@contextlib.contextmanager
+def _progress(what: str, t0: float):
+    """Log the elapsed time every :data:`PROGRESS_EVERY_S` while the body runs (a compile gives no
+    output of its own for a minute or more)."""
+    done = threading.Event()
+
+    def tick():
+        while not done.wait(PROGRESS_EVERY_S):
+            log.warning("compiling %s: %.0f s so far", what, time.perf_counter() - t0)
+
+    ticker = threading.Thread(target=tick, name="dss-build-progress", daemon=True)
+    ticker.start()
+    try:
+        yield
+    finally:
+        done.set()
+        ticker.join()
 
 
 def build_seconds() -> float:
@@ -130,7 +159,7 @@ def _build(name: str, sources: list[Path], **kw):
 
     def _load(mod_name: str, omp: bool):
         return load_hashed(mod_name, sources, _headers(), extra_cflags=_BASE_CFLAGS + (_OPENMP_FLAGS if omp else []),
-                           extra_ldflags=_OPENMP_FLAGS if omp else [], **kw)
+                           extra_ldflags=_OPENMP_FLAGS if omp else [], expected=BUILD_TIME, **kw)
 
     if not os.environ.get("DSS_DISABLE_OPENMP"):
         try:

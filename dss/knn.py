@@ -11,8 +11,9 @@ Three backends, one contract:
   points and queried with ``workers=-1`` (all cores). O(N log N), no N x N matrix. Used for CPU
   tensors that are not 3D or when the C++ kernel does not build.
 * ``"torch"``: brute force with :func:`torch.cdist` over chunks of query rows followed by
-  :func:`torch.topk`; memory is bounded by ``chunk_rows x M`` distances, never the whole
-  N x M matrix. Used for GPU tensors (no host round trip) and for small CPU inputs.
+  :func:`torch.topk` (:func:`dss.reference.knn_grid`, the grid kernel's torch twin); memory is
+  bounded by ``chunk_rows x M`` distances, never the whole N x M matrix. Used for GPU tensors
+  (no host round trip) and for small CPU inputs.
 
 ``backend="auto"`` picks ``torch`` for non-CPU tensors or when ``N*M`` is small, else ``cpp`` for
 3D points when the C++ kernel builds, else ``scipy``.
@@ -38,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dss import reference
 from dss._ext import build_error, load_cpu
 
 logger = logging.getLogger(__name__)
@@ -46,8 +48,6 @@ __all__ = ["Neighbors", "knn", "radius_neighbors", "valid_mask", "gather_neighbo
 
 # Below this many query x reference pairs the brute-force torch path is as fast as building a tree.
 _SMALL_PAIRS = 1 << 22
-# Memory budget (number of float32 distances) of one brute-force chunk.
-_CHUNK_ELEMENTS = 1 << 24
 
 
 @dataclass
@@ -143,38 +143,6 @@ def _scipy_query(
     return idx_t, dist_t
 
 
-def _torch_query(
-    ref: torch.Tensor,
-    query: torch.Tensor,
-    k: int,
-    radius: float | None,
-    chunk_rows: int | None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    ref = ref.detach()
-    query = query.detach()
-    n, m = query.shape[0], ref.shape[0]
-    kk = min(k, m)
-    if chunk_rows is None:
-        chunk_rows = max(1, _CHUNK_ELEMENTS // max(m, 1))
-    idx_out = torch.full((n, k), -1, dtype=torch.int64, device=query.device)
-    dist_out = torch.full((n, k), float("inf"), dtype=query.dtype, device=query.device)
-    if kk == 0 or n == 0:
-        return idx_out, dist_out
-    for start in range(0, n, chunk_rows):
-        q = query[start : start + chunk_rows]
-        # Exact differences (no |a|^2+|b|^2-2ab expansion): near-duplicate points must not get
-        # cancellation errors.
-        d = torch.cdist(q, ref, compute_mode="donot_use_mm_for_euclid_dist")
-        dk, ik = torch.topk(d, kk, dim=1, largest=False, sorted=True)
-        dist_out[start : start + q.shape[0], :kk] = dk
-        idx_out[start : start + q.shape[0], :kk] = ik
-    if radius is not None:
-        outside = dist_out > radius
-        idx_out[outside] = -1
-        dist_out[outside] = float("inf")
-    return idx_out, dist_out
-
-
 def _drop_self(idx: torch.Tensor, dist: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Remove one entry per row: the query point itself, or the last column if it is absent.
 
@@ -243,7 +211,7 @@ def knn(
     elif which == "cpp":
         idx, dist = _cpp_query(points, q, kq, None)
     else:
-        idx, dist = _torch_query(points, q, kq, None, chunk_rows)
+        idx, dist = reference.knn_grid(points, q, kq, None, chunk_rows)
     if exclude_self:
         idx, dist = _drop_self(idx, dist, k)
     return Neighbors(idx=idx, dist=dist)
@@ -282,7 +250,7 @@ def radius_neighbors(
     elif which == "cpp":
         idx, dist = _cpp_query(points, q, kq, float(radius))
     else:
-        idx, dist = _torch_query(points, q, kq, float(radius), chunk_rows)
+        idx, dist = reference.knn_grid(points, q, kq, float(radius), chunk_rows)
     if exclude_self:
         idx, dist = _drop_self(idx, dist, k_max)
     return Neighbors(idx=idx, dist=dist)

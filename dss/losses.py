@@ -18,36 +18,11 @@ from __future__ import annotations
 
 import torch
 
+from .autograd import FusedSmape
+
 __all__ = ["smape_loss", "l1_loss", "SmapeLoss", "L1Loss", "SMAPE_EPS"]
 
 SMAPE_EPS = 1e-5  # paper: "the value of epsilon is typically chosen as 1e-5"
-
-
-class _FusedSmape(torch.autograd.Function):
-    """mean SMAPE through the C++ ``smape_sum`` (one pass for the value and its derivative).
-
-    The torch expression in :func:`smape_loss` is the reference; this twin gives the same value
-    and gradient to float rounding (tests/test_losses.py) in one pass over the images instead of
-    ~12 elementwise operators and their autograd graph (12 views at 256x256, 2 threads: 21 -> ~4 ms).
-    """
-
-    @staticmethod
-    def forward(ctx, pred, target, eps, scale):
-        from . import _ext
-
-        # the derivative comes back already times the mean's scale: no extra pass over it when
-        # the loss is backpropagated alone (go == 1)
-        total, grad = _ext.loaded_cpu().smape_sum(pred.detach(), target.detach(), float(eps), float(scale),
-                                                  pred.requires_grad)
-        ctx.save_for_backward(grad)
-        return (total * scale).to(pred.dtype)
-
-    @staticmethod
-    def backward(ctx, go):
-        (grad,) = ctx.saved_tensors
-        if go.numel() == 1 and float(go) == 1.0:
-            return grad, None, None, None
-        return grad * go, None, None, None
 
 
 def _fused_smape_ok(pred: torch.Tensor, target: torch.Tensor, mask, reduction: str) -> bool:
@@ -129,7 +104,7 @@ def smape_loss(
     _check_images(pred, target)
     if channel_reduction in ("sum", "mean") and _fused_smape_ok(pred, target, mask, reduction):
         count = pred.numel() // pred.shape[-1] if channel_reduction == "sum" else pred.numel()
-        return _FusedSmape.apply(pred, target, eps, 1.0 / max(count, 1))
+        return FusedSmape.apply(pred, target, eps, 1.0 / max(count, 1))
     per = (pred - target).abs() / (pred.abs() + target.abs() + eps)
     return _reduce(_channel_reduce(per, channel_reduction), mask, reduction)
 

@@ -157,14 +157,14 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
     path = _check_file(path, _POINT_EXTS, "point cloud")
     ext = os.path.splitext(path)[1].lower()
     if ext == ".ply":
-        from .pointcloud import PointCloudError, _ply_arrays
+        from .ply import PointCloudError, read_ply_arrays
 
         try:  # checked against the header: a truncated file is refused, nan/inf tokens are read
-            arrays = _ply_arrays(Path(path))
+            arrays = read_ply_arrays(Path(path))
         except PointCloudError as e:
             raise ValueError(str(e)) from None
-        if arrays is not None:
-            return as_points(arrays[0].astype(np.float64), path)
+        if arrays is not None:  # float64 as read: a cloud far from the origin keeps its precision
+            return as_points(arrays.points, path)
     import open3d as o3d  # other formats and PLY layouts (its import alone takes about a second)
 
     if ext in (".obj", ".off", ".stl"):
@@ -181,7 +181,7 @@ def _check_ply_count(path: str, n_read: int) -> None:
     """Refuse a PLY file whose reader returned fewer vertices than its header declares."""
     if not str(path).lower().endswith(".ply"):
         return
-    from .pointcloud import PointCloudError, read_ply_header
+    from .ply import PointCloudError, read_ply_header
 
     try:
         vertex = read_ply_header(path).element("vertex")
@@ -194,10 +194,10 @@ def _check_ply_count(path: str, n_read: int) -> None:
 
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Load a triangle mesh file as ``(vertices (V,3) float64, faces (F,3) int64)``: binary
-    triangle PLY files by :func:`dss.pointcloud.read_ply_triangles`, everything else by open3d."""
+    triangle PLY files by :func:`dss.ply.read_ply_triangles`, everything else by open3d."""
     path = _check_file(path, _MESH_EXTS, "mesh")
     if path.lower().endswith(".ply"):
-        from .pointcloud import PointCloudError, read_ply_triangles
+        from .ply import PointCloudError, read_ply_triangles
 
         try:
             vf = read_ply_triangles(path)

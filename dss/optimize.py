@@ -319,13 +319,8 @@ def occlusion_counts(out: RenderOutput) -> torch.Tensor:
 
     Counted in the order the kernels rendered in and permuted back once (an (N,) gather): the
     fragments' (V, H, W, K) indices are never mapped to the caller's order."""
-    frags, splats, _ = out.in_render_order
-    V, N = splats.packed.shape[:2]
-    vis = frags.visible
-    flat = frags.idx.long() + (torch.arange(V, device=frags.idx.device) * N)[:, None, None, None]
-    seen = torch.zeros(V * N, dtype=torch.bool, device=flat.device)
-    seen[flat[vis]] = True
-    counts = (splats.valid & ~seen.view(V, N)).sum(0).float()
+    _, splats, _ = out.in_render_order
+    counts = (splats.valid & ~out.seen(in_render_order=True)).sum(0).float()
     if out.point_order is None:
         return counts
     caller = torch.empty_like(counts)

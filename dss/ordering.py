@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import torch
 
+from . import reference
+from .reference.ordering import morton_codes
+
 __all__ = ["morton_codes", "spatial_order", "SORT_MIN_POINTS"]
 
 #: (a copy of CPU points sorted lately, their order), most recent first: see :func:`spatial_order`
@@ -27,29 +30,12 @@ RECENT_MAX_POINTS = 1_000_000
 SORT_MIN_POINTS = 2048
 
 
-def _spread3(x: torch.Tensor) -> torch.Tensor:
-    """Interleave the low 10 bits of x (int64): bit b moves to bit 3b (magic-number spreading)."""
-    x = (x | (x << 16)) & 0x030000FF
-    x = (x | (x << 8)) & 0x0300F00F
-    x = (x | (x << 4)) & 0x030C30C3
-    return (x | (x << 2)) & 0x09249249
-
-
-def morton_codes(points: torch.Tensor) -> torch.Tensor:
-    """(N, 3) positions -> (N,) int64 Z-order codes on a 1024^3 grid over the bounding box."""
-    p = points.detach()
-    lo = p.min(dim=0).values
-    ext = (p.max(dim=0).values - lo).clamp_min(1e-30)
-    q = ((p - lo) * (1023.0 / ext)).to(torch.int64).clamp_(0, 1023)
-    return _spread3(q[:, 0]) | (_spread3(q[:, 1]) << 1) | (_spread3(q[:, 2]) << 2)
-
-
 def spatial_order(points: torch.Tensor) -> torch.Tensor:
     """(N,) int64 permutation that sorts ``points`` along the Z-order curve (stable).
 
     CPU float32 points go through the C++ twin (``morton_order`` in dss/csrc/ordering_cpu.cpp: the same codes,
     a radix sort; ~0.5 against ~2.3 ms per 20K-point render) when the module is already loaded;
-    :func:`morton_codes` + ``torch.argsort`` here is the reference it is tested against.
+    :func:`dss.reference.morton_order` (:func:`morton_codes` + ``torch.argsort``) is its twin.
 
     On the CPU the orders of the last :data:`RECENT_ORDERS` clouds (of at most
     :data:`RECENT_MAX_POINTS` points) are kept with a copy of their points, and one is returned
@@ -71,7 +57,7 @@ def spatial_order(points: torch.Tensor) -> torch.Tensor:
     if mod is not None and p.device.type == "cpu" and p.dtype == torch.float32:
         order = mod.morton_order(p)
     else:
-        order = torch.argsort(morton_codes(p), stable=True)
+        order = reference.morton_order(p)
     if keep:
         _recent = [(p.clone(), order.clone()), *_recent[: RECENT_ORDERS - 1]]
     return order

@@ -34,18 +34,7 @@ def views_seeing(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, 
     s = replace(settings, backface_culling=False, gradient="none")
     with torch.no_grad():
         out = render(points.detach(), normals.detach(), cameras, s, shading="mask", backend=backend, sigma=sigma)
-    frags, splats, _ = out.in_render_order
-    V, N = splats.packed.shape[:2]
-    vis = frags.visible
-    flat = frags.idx.long() + (torch.arange(V, device=frags.idx.device) * N)[:, None, None, None]
-    seen = torch.zeros(V * N, dtype=torch.bool, device=flat.device)
-    seen[flat[vis]] = True
-    seen = seen.view(V, N)
-    if out.point_order is None:
-        return seen
-    caller = torch.empty_like(seen)
-    caller[:, out.point_order] = seen  # sorted position j holds caller point point_order[j]
-    return caller
+    return out.seen()
 
 
 def view_orientation_vote(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras,

@@ -321,8 +321,10 @@ def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24
         raise ValueError(f"points must be (N, 3), got {p.shape}")
     p = p[np.isfinite(p).all(1)]
     diag = float(np.linalg.norm(p.max(0) - p.min(0))) if len(p) else 0.0
+    if len(p) == 0:
+        raise ValueError("cannot estimate the noise of an empty point set (no finite point)")
     if not diag > 0:
-        raise ValueError("cannot estimate noise of an empty or zero-size point set")
+        raise ValueError(f"cannot estimate the noise: all {len(p)} points coincide (a zero-size bounding box)")
     # in units of the bounding-box diagonal: the result is a fraction of it at any input scale
     p = (p - (p.max(0) + p.min(0)) / 2) / diag
     k = int(np.clip(round(patch_fraction * len(p)), k_min, k_max))

@@ -1,6 +1,12 @@
-"""Point clouds: PLY input/output, PCA normals, and the small geometric helpers every app needs.
+"""Point clouds: loading and saving (the PLY format itself is :mod:`dss.ply`), PCA normals, and the
+small geometric helpers every app needs.
 
 Points and normals are float32 tensors of shape (N, 3); colours are float32 in [0, 1], (N, 3).
+A cloud far from the origin (a georeferenced scan: coordinates of 1e6 with millimetre detail,
+stored as doubles) does not fit float32, whose values are 0.06 apart at 1e6. :func:`load_ply`
+reads it in float64 and centres it there: ``points`` are then relative to ``offset``, a float64
+(3,) tensor, and :func:`save_ply` writes ``points + offset`` back as doubles in the file's frame.
+A cloud read from double coordinates is written as doubles too (``stored_as``).
 """
 
 from __future__ import annotations
@@ -14,7 +20,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .io_utils import atomic_path
+from .ply import (
+    PlyArrays,
+    PlyElement,
+    PlyHeader,
+    PointCloudError,
+    read_ply_arrays,
+    read_ply_header,
+    read_ply_triangles,
+    read_ply_vertices,
+    write_ply,
+)
 
 log = logging.getLogger(__name__)
 
@@ -23,6 +39,7 @@ __all__ = [
     "PointCloudError",
     "load_ply",
     "save_ply",
+    "centred_cloud",
     "estimate_normals",
     "orient_normals_outward",
     "bbox_diagonal",
@@ -31,22 +48,34 @@ __all__ = [
     "all_finite",
     "finite_rows",
     "find_outliers",
+    # the PLY format (dss.ply), importable from here as well
+    "PlyElement",
+    "PlyHeader",
     "read_ply_header",
     "read_ply_vertices",
+    "read_ply_triangles",
 ]
 
-
-class PointCloudError(ValueError):
-    """Bad point-cloud input; the message names the file (when there is one) and the problem."""
+#: load_ply(centre="auto") centres a cloud whose bounding-box centre lies farther from the origin
+#: than this many bounding-box diagonals (float32 then starts to round away its detail)
+FAR_FROM_ORIGIN = 10.0
 
 
 @dataclass
 class PointCloud:
-    """A point cloud. ``points``/``normals``/``colors`` are (N, 3) float32 tensors (or None)."""
+    """A point cloud. ``points``/``normals``/``colors`` are (N, 3) float32 tensors (or None).
+
+    ``offset``: None, or a float64 (3,) tensor with the cloud's coordinates in its file being
+    ``points + offset`` (a cloud far from the origin, centred on load; see the module docstring).
+    ``stored_as``: ``"float"`` or ``"double"``, the type its file holds the coordinates in
+    (what :func:`save_ply` writes them as; a cloud with an offset is written as doubles).
+    """
 
     points: torch.Tensor
     normals: torch.Tensor | None = None
     colors: torch.Tensor | None = None
+    offset: torch.Tensor | None = None
+    stored_as: str = "float"
 
     def __post_init__(self):
         self.points = _as_tensor(self.points)
@@ -61,27 +90,32 @@ class PointCloud:
                         f"{name} must have the shape of points {tuple(self.points.shape)}, got {tuple(v.shape)}"
                     )
                 setattr(self, name, v)
+        if self.offset is not None:
+            self.offset = torch.as_tensor(np.asarray(self.offset, np.float64).reshape(3))
+        if self.stored_as not in ("float", "double"):
+            raise ValueError(f"stored_as must be 'float' or 'double', got {self.stored_as!r}")
 
     def __len__(self) -> int:
         return self.points.shape[0]
 
     def to(self, device) -> PointCloud:
-        return PointCloud(
-            self.points.to(device),
-            None if self.normals is None else self.normals.to(device),
-            None if self.colors is None else self.colors.to(device),
-        )
+        return replace(self, points=self.points.to(device),
+                       normals=None if self.normals is None else self.normals.to(device),
+                       colors=None if self.colors is None else self.colors.to(device))
 
     def select(self, keep: torch.Tensor) -> PointCloud:
-        """Rows ``keep`` (bool mask or indices) of every attribute."""
-        return PointCloud(
-            self.points[keep],
-            None if self.normals is None else self.normals[keep],
-            None if self.colors is None else self.colors[keep],
-        )
+        """Rows ``keep`` (bool mask or indices) of every attribute (the offset stays)."""
+        return replace(self, points=self.points[keep],
+                       normals=None if self.normals is None else self.normals[keep],
+                       colors=None if self.colors is None else self.colors[keep])
 
     def with_normals(self, normals: torch.Tensor) -> PointCloud:
         return replace(self, normals=normals)
+
+    def coordinates(self) -> np.ndarray:
+        """(N, 3) float64: the points in their file's frame (``points + offset``)."""
+        p = self.points.detach().cpu().double().numpy()
+        return p if self.offset is None else p + self.offset.numpy()
 
 
 def _as_tensor(x) -> torch.Tensor:
@@ -115,225 +149,56 @@ def finite_rows(*arrays: torch.Tensor | None) -> torch.Tensor:
     return mask
 
 
-# ------------------------------------------------------------------------------ PLY reading
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-@dataclass
-class PlyElement:
-    """One ``element`` of a PLY header: its name, count and properties ``(name, type)``; a list
-    property's type is ``("list", count type, item type)``."""
-
-    name: str
-    count: int
-    properties: list
-
-
-@dataclass
-class PlyHeader:
-    """A parsed PLY header: ``format`` (``ascii`` | ``binary_little_endian`` |
-    ``binary_big_endian``), the elements in file order, and the header's length in bytes."""
-
-    format: str
-    elements: list
-    size: int
-
-    def element(self, name: str) -> PlyElement | None:
-        return next((e for e in self.elements if e.name == name), None)
-
-
-def read_ply_header(path: str | os.PathLike) -> PlyHeader:
-    """Parse a PLY header; raises PointCloudError naming the file and what is wrong."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        first = f.readline()
-        if first.strip() != b"ply":
-            raise PointCloudError(f"{path}: not a PLY file (header does not start with 'ply')")
-        fmt, elements = None, []
-        while True:
-            raw = f.readline()
-            if not raw:
-                raise PointCloudError(f"{path}: the PLY header has no 'end_header' line (truncated file?)")
-            line = raw.decode("ascii", errors="replace").strip()
-            words = line.split()
-            if not words or words[0] in ("comment", "obj_info"):
-                continue
-            if words[0] == "end_header":
-                break
-            if words[0] == "format" and len(words) >= 2:
-                fmt = words[1]
-            elif words[0] == "element" and len(words) == 3 and words[2].lstrip("-").isdigit():
-                if int(words[2]) < 0:
-                    raise PointCloudError(f"{path}: the PLY header gives a negative count: {line!r}")
-                elements.append(PlyElement(words[1], int(words[2]), []))
-            elif words[0] == "property" and elements and len(words) == 3 and words[1] in _PLY_TYPES:
-                elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
-            elif (words[0] == "property" and elements and len(words) == 5 and words[1] == "list"
-                  and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES):
-                elements[-1].properties.append((words[4], ("list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]])))
-            else:
-                raise PointCloudError(f"{path}: unreadable PLY header line {line!r}")
-        size = f.tell()
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise PointCloudError(f"{path}: unknown PLY format {fmt!r}")
-    return PlyHeader(fmt, elements, size)
-
-
-def _fixed_dtype(element: PlyElement, endian: str) -> np.dtype | None:
-    """The numpy record type of a binary element with scalar properties only, else None."""
-    if any(isinstance(t, tuple) for _, t in element.properties):
-        return None
-    return np.dtype([(n, endian + t) for n, t in element.properties])
-
-
-def _binary_offset(header: PlyHeader, element: PlyElement, endian: str) -> int | None:
-    """Byte offset of ``element``'s body in a binary PLY file, or None when an element before
-    it has list properties (its size is then not known from the header)."""
-    offset = header.size
-    for e in header.elements:
-        if e is element:
-            return offset
-        dt = _fixed_dtype(e, endian)
-        if dt is None:
-            return None
-        offset += e.count * dt.itemsize
+# ------------------------------------------------------------------------------ loading, saving
+def _frame(path: Path, points: np.ndarray, coordinates: str, centre) -> np.ndarray | None:
+    """The offset (3,) float64 to take off ``points`` (float64 (N, 3), as read) before they become
+    float32, or None; refuses a cloud that its file's precision has collapsed, or whose points
+    are all one (naming the cause)."""
+    q = points[np.isfinite(points).all(1)]
+    if len(q) == 0:
+        return None  # the NaN/inf report follows
+    lo, hi = q.min(0), q.max(0)
+    extent = float(np.linalg.norm(hi - lo))
+    reach = float(np.abs(q).max())
+    step = float(np.spacing(np.float32(reach))) if coordinates == "float" and np.isfinite(reach) else 0.0
+    if len(q) > 1 and extent == 0:
+        where = ", ".join(f"{v:.9g}" for v in q[0])
+        # far from the origin (float32 steps of a millimetre and more) a small cloud collapses
+        cause = (f"; float32 coordinates there are {step:.3g} apart, so a cloud smaller than that collapses onto "
+                 "one position: store the coordinates as double" if step >= 1e-3 else "")
+        raise PointCloudError(f"{path}: all {len(q)} points are identical ({where}): a zero-size bounding box{cause}")
+    if step > 0.01 * extent:
+        raise PointCloudError(
+            f"{path}: the coordinates are float32 values up to {reach:.3g}, which are {step:.3g} apart there: "
+            f"{step / extent:.0%} of the cloud's size ({extent:.3g}), so its points lie on a coarse lattice and the "
+            "shape is lost; store the coordinates as double, or subtract an offset before writing the file")
+    if step > 1e-4 * extent:
+        log.warning("%s: the coordinates are float32 values up to %.3g, which are %.3g apart there (%.2g of the "
+                    "cloud's size): fine detail is rounded away; store them as double", path, reach, step, step / extent)
+    centre_point = (lo + hi) / 2
+    if centre is True or (centre == "auto" and float(np.abs(centre_point).max()) > FAR_FROM_ORIGIN * extent):
+        return centre_point
     return None
 
 
-def read_ply_vertices(path: str | os.PathLike) -> dict[str, np.ndarray] | None:
-    """The vertex element of a PLY file as ``{property: (N,) array}``, checked against the header.
-
-    A binary body shorter than the header's vertex count, or an ASCII body with fewer rows
-    (or rows with the wrong number of values) is refused by name: readers that stop at the
-    first bad row fill the rest with zeros, and those zeros look like points at the origin.
-    ASCII tokens ``nan``, ``inf`` and ``-inf`` are read as such (the caller's ``nan_policy``
-    decides about them). Returns None for a layout this reader does not cover (a list property
-    in the vertices, or a list element before them in a binary file); open3d reads those.
-    """
-    path = Path(path)
-    header = read_ply_header(path)
-    vertex = header.element("vertex")
-    if vertex is None:
-        raise PointCloudError(f"{path}: the PLY header has no 'vertex' element")
-    if any(isinstance(t, tuple) for _, t in vertex.properties):
-        return None
-    names = [n for n, _ in vertex.properties]
-    if header.format == "ascii":
-        with open(path, "rb") as f:
-            f.seek(header.size)
-            lines = f.read().decode("ascii", errors="replace").splitlines()
-        lines = [ln for ln in lines if ln.strip()]
-        skip = 0
-        for e in header.elements:
-            if e is vertex:
-                break
-            skip += e.count
-        rows = lines[skip:skip + vertex.count]
-        if len(rows) < vertex.count:
-            raise PointCloudError(f"{path}: truncated: the header declares {vertex.count} vertices, "
-                                  f"the file holds {max(0, len(rows))} rows")
-        values = np.empty((vertex.count, len(names)), np.float64)
-        for i, row in enumerate(rows):
-            tokens = row.split()
-            if len(tokens) != len(names):
-                raise PointCloudError(f"{path}: vertex row {i} has {len(tokens)} values, the header "
-                                      f"declares {len(names)} ({' '.join(names)})")
-            try:
-                values[i] = [float(t) for t in tokens]  # float() reads nan, inf, -inf too
-            except ValueError:
-                raise PointCloudError(f"{path}: vertex row {i} holds a value that is not a number: "
-                                      f"{row.strip()[:80]!r}") from None
-        return {n: values[:, j] for j, n in enumerate(names)}
-    endian = "<" if header.format == "binary_little_endian" else ">"
-    offset = _binary_offset(header, vertex, endian)
-    if offset is None:
-        return None
-    dt = _fixed_dtype(vertex, endian)
-    available = max(0, path.stat().st_size - offset)
-    complete = available // dt.itemsize if dt.itemsize else 0
-    if complete < vertex.count:
-        raise PointCloudError(f"{path}: truncated: the header declares {vertex.count} vertices, "
-                              f"the file holds {complete} complete rows ({path.stat().st_size} bytes)")
-    data = np.fromfile(path, dtype=dt, count=vertex.count, offset=offset)
-    return {n: data[n] for n in names}
+def centred_cloud(points, normals=None, colors=None, centre: bool | str = "auto", source: str = "points") -> PointCloud:
+    """A :class:`PointCloud` from float64 coordinates (N, 3) (a mesh's samples, a reader's
+    output), centred in float64 as :func:`load_ply` centres a file (``centre``; the offset is
+    kept). ``source`` names the data in errors (all points identical)."""
+    p = np.asarray(points, np.float64)
+    offset = _frame(source, p, "double", centre)
+    return PointCloud((p if offset is None else p - offset).astype(np.float32), normals, colors, offset,
+                      _stored_as(p, "double"))
 
 
-def read_ply_triangles(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
-    """A triangle mesh from a binary PLY file as ``(vertices (V, 3) float64, faces (F, 3) int64)``
-    without open3d (whose import alone costs more than a 20K-point job's metrics).
-
-    Covers binary files whose elements up to the faces have scalar properties only, and whose
-    face element has one list property (``vertex_indices`` or ``vertex_index``) of triangles,
-    other face properties scalar (colours, flags). Returns None for anything else (ASCII,
-    polygons other than triangles, other list properties, a short file): :func:`dss.metrics.load_mesh`
-    then uses open3d.
-    """
-    path = Path(path)
-    header = read_ply_header(path)
-    if header.format == "ascii":
-        return None
-    endian = "<" if header.format == "binary_little_endian" else ">"
-    cols = read_ply_vertices(path)
-    if cols is None or not all(n in cols for n in ("x", "y", "z")):
-        return None
-    face = header.element("face")
-    offset = None if face is None else _binary_offset(header, face, endian)
-    if offset is None:
-        return None
-    fields, index_name = [], None
-    for name, t in face.properties:
-        if isinstance(t, tuple):
-            if index_name is not None or name not in ("vertex_indices", "vertex_index"):
-                return None
-            index_name = name
-            # every face a triangle: the list is then a fixed (count, 3 indices) record
-            fields += [("_count", endian + t[1]), (name, endian + t[2], (3,))]
-        else:
-            fields.append((name, endian + t))
-    if index_name is None:
-        return None
-    dt = np.dtype(fields)
-    available = max(0, path.stat().st_size - offset)
-    if available < face.count * dt.itemsize:
-        return None  # polygons with fewer corners, or a truncated file: open3d's reader decides
-    data = np.fromfile(path, dtype=dt, count=face.count, offset=offset)
-    if not (data["_count"] == 3).all():
-        return None  # not all triangles (the records are then misaligned): open3d reads polygons
-    vertices = np.stack([np.asarray(cols[n], np.float64) for n in ("x", "y", "z")], 1)
-    faces = data[index_name].astype(np.int64)
-    return vertices, faces
-
-
-def _columns(cols: dict[str, np.ndarray], names: tuple[str, ...]) -> np.ndarray | None:
-    if not all(n in cols for n in names):
-        return None
-    return np.stack([np.asarray(cols[n], np.float64) for n in names], 1)
-
-
-def _ply_arrays(path: Path):
-    """(points, normals or None, colours or None) as float32 arrays from :func:`read_ply_vertices`,
-    or None when that reader does not cover the file's layout."""
-    cols = read_ply_vertices(path)
-    if cols is None:
-        return None
-    points = _columns(cols, ("x", "y", "z"))
-    if points is None:
-        raise PointCloudError(f"{path}: the PLY vertices have no x, y, z properties")
-    normals = _columns(cols, ("nx", "ny", "nz"))
-    colors = None
-    for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if all(n in cols for n in names):
-            kind = cols[names[0]].dtype
-            colors = _columns(cols, names)
-            if np.issubdtype(kind, np.integer):  # 0..255 (or 0..65535) -> [0, 1]
-                colors = colors / float(np.iinfo(kind).max)
-            break
-    with np.errstate(over="ignore", invalid="ignore"):  # out-of-range doubles become inf: reported
-        return tuple(None if a is None else a.astype(np.float32) for a in (points, normals, colors))
+def _stored_as(points: np.ndarray, coordinates: str) -> str:
+    """``"double"`` when the coordinates came as doubles that float32 does not hold exactly (a
+    binary file's double properties, or text and other readers' values with more digits)."""
+    if coordinates == "float":
+        return "float"
+    with np.errstate(over="ignore", invalid="ignore"):
+        exact = np.array_equal(points.astype(np.float32).astype(np.float64), points, equal_nan=True)
+    return "float" if exact else "double"
 
 
 def load_ply(
@@ -341,6 +206,7 @@ def load_ply(
     nan_policy: str = "drop",
     compute_normals: bool = True,
     normals_k: int = 16,
+    centre: bool | str = "auto",
 ) -> PointCloud:
     """Load a point cloud (PLY, or any format open3d reads; a mesh file gives its vertices).
 
@@ -348,17 +214,24 @@ def load_ply(
         path: the file.
         nan_policy: rows with NaN/inf in points or normals (ASCII ``nan``/``inf`` tokens
             included) are reported (logged with their count) and then ``"drop"``-ped, or the
-            load is refused with ``"raise"``.
+            load is refused with ``"raise"``. ``"raise"`` also refuses a PLY file that holds
+            more rows than its header declares (``"drop"`` warns and reads the declared ones).
         compute_normals: when the file has no normals, estimate them by PCA over ``normals_k``
             neighbours and orient them consistently (see :func:`estimate_normals`).
+        centre: ``"auto"``: a cloud whose bounding-box centre lies more than
+            :data:`FAR_FROM_ORIGIN` diagonals from the origin is centred (in float64, before the
+            float32 conversion) and the centre kept as ``offset``; True: always; False: never.
 
     Raises:
         PointCloudError: missing file, unreadable/malformed file, a PLY body with fewer
-            vertices than its header declares (truncated), empty cloud, NaN rows with
-            ``nan_policy="raise"``, or no finite row left.
+            vertices than its header declares (truncated), empty cloud, all points identical,
+            float32 coordinates too coarse for the cloud's size (far from the origin), NaN rows
+            with ``nan_policy="raise"``, or no finite row left.
     """
     if nan_policy not in ("drop", "raise"):
         raise ValueError(f"nan_policy must be 'drop' or 'raise', got {nan_policy!r}")
+    if centre not in (True, False, "auto"):
+        raise ValueError(f"centre must be True, False or 'auto', got {centre!r}")
     path = Path(path)
     if not path.exists():
         raise PointCloudError(f"{path}: no such file")
@@ -366,7 +239,7 @@ def load_ply(
         raise PointCloudError(f"{path}: is a directory, expected a point cloud file")
     if path.stat().st_size == 0:
         raise PointCloudError(f"{path}: the file is empty")
-    arrays = _ply_arrays(path) if path.suffix.lower() == ".ply" else None
+    arrays = read_ply_arrays(path, strict=nan_policy == "raise") if path.suffix.lower() == ".ply" else None
     if arrays is None:  # another format, or a PLY layout our reader leaves to open3d
         import open3d as o3d  # imported only here: the PLY files the project writes need no open3d
 
@@ -376,13 +249,16 @@ def load_ply(
             if len(pcd.points) != declared:
                 raise PointCloudError(f"{path}: the header declares {declared} vertices, "
                                       f"{len(pcd.points)} could be read (truncated or malformed file)")
-        with np.errstate(over="ignore", invalid="ignore"):
-            arrays = (np.asarray(pcd.points, dtype=np.float32),
-                      np.asarray(pcd.normals, dtype=np.float32) if pcd.has_normals() else None,
-                      np.asarray(pcd.colors, dtype=np.float32) if pcd.has_colors() else None)
-    if len(arrays[0]) == 0:
+        arrays = PlyArrays(np.asarray(pcd.points, np.float64),
+                           np.asarray(pcd.normals, np.float64) if pcd.has_normals() else None,
+                           np.asarray(pcd.colors, np.float64) if pcd.has_colors() else None, "double")
+    if len(arrays.points) == 0:
         raise PointCloudError(f"{path}: holds no points (empty cloud, or a malformed file open3d could not parse)")
-    points, normals, colors = (None if a is None else torch.from_numpy(np.array(a, np.float32)) for a in arrays)
+    offset = _frame(path, arrays.points, arrays.coordinates, centre)
+    with np.errstate(over="ignore", invalid="ignore"):  # out-of-range doubles become inf: reported
+        shifted = arrays.points if offset is None else arrays.points - offset
+        points, normals, colors = (None if a is None else torch.from_numpy(np.asarray(a, np.float64).astype(np.float32))
+                                   for a in (shifted, arrays.normals, arrays.colors))
 
     ok = finite_rows(points, normals, colors)
     n_bad = int((~ok).sum())
@@ -395,6 +271,9 @@ def load_ply(
         points, normals, colors = points[ok], None if normals is None else normals[ok], None if colors is None else colors[ok]
         if len(points) == 0:
             raise PointCloudError(f"{path}: no finite point left after dropping NaN/inf rows")
+    if offset is not None:
+        log.info("%s: %d points around (%s), far from the origin: centred in float64 (offset kept, written back)",
+                 path, len(points), ", ".join(f"{v:.6g}" for v in offset))
     if normals is not None:
         length = normals.norm(dim=1)
         if (length < 1e-8).all():
@@ -407,44 +286,22 @@ def load_ply(
             raise PointCloudError(f"{path}: {len(points)} points are too few to estimate normals")
         log.info("%s: no normals in the file, estimating them by PCA (k=%d)", path, normals_k)
         normals = estimate_normals(points, k=normals_k)
-    return PointCloud(points, normals, colors)
+    return PointCloud(points, normals, colors, offset, _stored_as(arrays.points, arrays.coordinates))
 
 
 def save_ply(path: str | os.PathLike, cloud: PointCloud, ascii: bool = False, exclusive: bool = False) -> Path:
-    """Write ``cloud`` (points and normals as float32, colours as uchar when present) atomically
-    as a binary little-endian (or ``ascii``) PLY; returns the path written. ``exclusive``: never
-    replace an existing file (see :class:`dss.io_utils.atomic_path`)."""
+    """Write ``cloud`` atomically as a binary little-endian (or ``ascii``) PLY (:func:`dss.ply.write_ply`);
+    returns the path written. Coordinates as float, or as double for a cloud read from doubles
+    (``stored_as``) or with an ``offset`` (then ``points + offset``: the file's frame, to the
+    precision it came in); normals as
+    float, colours as uchar. ``exclusive``: never replace an existing file (see
+    :class:`dss.io_utils.atomic_path`)."""
     if len(cloud) == 0:
         raise PointCloudError(f"{path}: refusing to write an empty point cloud")
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    cols = [cloud.points.detach().cpu().float().numpy()]
-    if cloud.normals is not None:
-        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-        cols.append(cloud.normals.detach().cpu().float().numpy())
-    if cloud.colors is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        cols.append(np.round(cloud.colors.detach().cpu().double().clamp(0, 1).numpy() * 255).astype(np.uint8))
-    rows = np.empty(len(cloud), dtype=fields)
-    names = [f[0] for f in fields]
-    j = 0
-    for c in cols:
-        for i in range(3):
-            rows[names[j]] = c[:, i]
-            j += 1
-    kind = {"<f4": "float", "u1": "uchar"}
-    header = ("ply\nformat " + ("ascii" if ascii else "binary_little_endian") + " 1.0\n"
-              f"element vertex {len(cloud)}\n" + "".join(f"property {kind[t]} {n}\n" for n, t in fields)
-              + "end_header\n")
-    writer = atomic_path(Path(path), exclusive=exclusive)
-    with writer as tmp, open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        if ascii:
-            fmt = " ".join("%d" if t == "u1" else "%.9g" for _, t in fields)
-            np.savetxt(f, np.stack([rows[n].astype(np.float64) for n in names], 1), fmt=fmt)
-        else:
-            f.write(rows.tobytes())
-    return writer.path
-
+    return write_ply(path, cloud.coordinates() if cloud.offset is not None else cloud.points.detach().cpu().float().numpy(),
+                     None if cloud.normals is None else cloud.normals.detach().cpu().float().numpy(),
+                     None if cloud.colors is None else cloud.colors.detach().cpu().double().numpy(),
+                     double=cloud.offset is not None or cloud.stored_as == "double", ascii=ascii, exclusive=exclusive)
 
 def estimate_normals(points, k: int = 16, orient: str = "consistent") -> torch.Tensor:
     """PCA normals (Hoppe et al. 1992) over the ``k`` nearest neighbours (the point included),
@@ -501,7 +358,11 @@ def orient_normals_consistent(points: np.ndarray, normals: np.ndarray, idx: np.n
     first), then each connected part flipped so that most of its normals point away from the
     cloud's centroid. Returns the oriented (N, 3) normals."""
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+    from scipy.sparse.csgraph import (
+        breadth_first_order,
+        connected_components,
+        minimum_spanning_tree,
+    )
 
     n_pts, k = idx.shape
     rows = np.repeat(np.arange(n_pts), k)
@@ -544,26 +405,38 @@ def orient_normals_outward(points: torch.Tensor, normals: torch.Tensor) -> torch
     return torch.where(s < 0, -normals, normals)
 
 
+def _float_tensor(points) -> torch.Tensor:
+    """``points`` as a floating tensor in its own precision (float64 stays float64)."""
+    p = points.detach() if isinstance(points, torch.Tensor) else torch.as_tensor(np.asarray(points))
+    return p if p.is_floating_point() else p.float()
+
+
 def bbox_diagonal(points) -> float:
-    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
-    p = _as_tensor(points)
-    if p.numel() == 0:
-        raise PointCloudError("bounding box of an empty point set")
+    """Length of the axis-aligned bounding-box diagonal of (N, 3) points (tensor or array),
+    computed in their own precision. An empty point set has no bounding box: PointCloudError
+    (a ValueError)."""
+    p = _float_tensor(points)
+    if p.ndim != 2 or p.shape[0] == 0:
+        raise PointCloudError(f"bounding box of an empty point set (shape {tuple(p.shape)})")
     return float((p.max(0).values - p.min(0).values).norm())
 
 
 def normalize_unit_diagonal(points) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Centre the bounding box at the origin and scale its diagonal to 1.
 
+    Computed in the points' own precision: float64 points (far from the origin) are centred in
+    float64 before the result becomes float32.
+
     Returns:
-        (normalised points, centre (3,), scale) with ``normalised = (points - centre) / scale``.
+        (normalised points (N, 3) float32, centre (3,) in the points' dtype, scale) with
+        ``normalised = (points - centre) / scale``.
     """
-    p = _as_tensor(points)
+    p = _float_tensor(points)
     center = (p.max(0).values + p.min(0).values) / 2
     scale = bbox_diagonal(p)
     if scale <= 0:
-        raise PointCloudError("all points coincide: cannot normalise a zero-size bounding box")
-    return (p - center) / scale, center, scale
+        raise PointCloudError(f"all {len(p)} points coincide: cannot normalise a zero-size bounding box")
+    return ((p - center) / scale).float(), center, scale
 
 
 def add_gaussian_noise(points, std_fraction: float, generator: torch.Generator | None = None, seed: int | None = None) -> torch.Tensor:
@@ -618,7 +491,7 @@ def find_outliers(points, k: int = 16, z_threshold: float = 8.0, ratio_threshold
         raise ValueError(f"outlier thresholds must be > 0, got z {z_threshold}, ratio {ratio_threshold}")
     if int(k) < 1 or int(iterations) < 1:
         raise ValueError(f"outlier k and iterations must be >= 1, got k {k}, iterations {iterations}")
-    p = _as_tensor(points).detach().double()
+    p = _float_tensor(points).double()
     outlier = torch.zeros(len(p), dtype=torch.bool)
     for _ in range(int(iterations)):
         idx = (~outlier).nonzero()[:, 0]

@@ -82,11 +82,12 @@ from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
-from torch.autograd.function import once_differentiable
 
+from dss import reference
 from dss._ext import build_error, load_cpu
+from dss.autograd import NeighbourDiff
 from dss.knn import Neighbors, gather_neighbors, knn
-from dss.pointcloud import all_finite
+from dss.pointcloud import all_finite, bbox_diagonal  # bbox_diagonal: re-exported
 
 logger = logging.getLogger(__name__)
 
@@ -112,14 +113,6 @@ REPULSION_EPS = 1e-4
 
 
 # ----------------------------------------------------------------------------- bandwidths
-
-
-def bbox_diagonal(points: torch.Tensor) -> float:
-    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
-    if points.shape[0] == 0:
-        return 0.0
-    p = points.detach()
-    return float((p.max(0).values - p.min(0).values).norm())
 
 
 def default_bandwidth(diag: float, n: int) -> float:
@@ -423,66 +416,6 @@ def _frames_kernel(points: torch.Tensor, pca_backend: str):
     return mod
 
 
-class _NeighbourDiff(torch.autograd.Function):
-    """(N, 3) points -> (N, K, 3) ``(p_i - p_k) * valid`` with the C++ forward and backward (the
-    backward is a scatter of the (N, K, 3) gradient onto both ends of each pair)."""
-
-    @staticmethod
-    def forward(ctx, points, idx, valid):
-        ctx.save_for_backward(idx, valid)
-        return load_cpu().neighbor_diff_forward(points.detach(), idx, valid)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad):
-        idx, valid = ctx.saved_tensors
-        return load_cpu().neighbor_diff_backward(grad, idx, valid), None, None
-
-
-def _frames_torch(points, normals, occlusion, idx, bandwidth, sharpness_angle, covariance_weight, cutoff,
-                  min_neighbors):
-    """local_frames in torch ops (the twin of frames_cpu.cpp): (valid, diff, psi, w, centroid,
-    eigenvalues, eigenvectors, unit normals or None)."""
-    nb = gather_neighbors(points, idx)  # (N, K, 3), differentiable
-    diff = points.unsqueeze(1) - nb  # p_i - p_k
-    with torch.no_grad():
-        dist2 = (diff.detach() ** 2).sum(-1)
-        valid = (idx >= 0) & (dist2 <= (cutoff * bandwidth) ** 2)
-        if min_neighbors > 0:
-            valid[:, :min_neighbors] |= idx[:, :min_neighbors] >= 0
-        validf = valid.to(points.dtype)
-    # Masked neighbours contribute nothing (and no gradient); outside no_grad to keep the graph.
-    diff = diff * validf.unsqueeze(-1)
-    with torch.no_grad():
-        psi = torch.exp(-dist2 / (bandwidth * bandwidth)) * validf
-        w = psi.clone()
-        if normals is not None:
-            nrm = F.normalize(normals.detach(), dim=-1)
-            cos = (gather_neighbors(nrm, idx) * nrm.unsqueeze(1)).sum(-1)
-            denom = max(1e-5, 1.0 - math.cos(sharpness_angle))
-            w = w * torch.exp(-((1.0 - cos) ** 2) / denom)
-        if occlusion is not None:
-            occ = occlusion.detach().to(points.dtype)
-            w = w * (1.0 / (gather_neighbors(occ.unsqueeze(-1), idx)[..., 0] + 1.0))
-        wsum = w.sum(1, keepdim=True)
-        # Rows whose weights all vanish (no neighbour, or all masked) keep w = 0.
-        w = torch.where(
-            wsum > 0, w / wsum.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(w)
-        )
-
-        nb_d = nb.detach()
-        centroid = (w.unsqueeze(-1) * nb_d).sum(1)
-        centred = (nb_d - centroid.unsqueeze(1)) * validf.unsqueeze(-1)
-        cw = w * w if covariance_weight == "squared" else w
-        cov = torch.einsum("nk,nki,nkj->nij", cw, centred, centred)
-        # eigh in float64 (3x3 per point, cheap) for accurate eigenvectors of nearly planar or
-        # tiny neighbourhoods; back to the working dtype afterwards.
-        evals, evecs = batched_eigh(cov.double())
-        evals = evals.to(points.dtype)
-        evecs = evecs.to(points.dtype)
-    return valid, diff, psi, w, centroid, evals, evecs, nrm if normals is not None else None
-
-
 def local_frames(
     points: torch.Tensor,
     normals: torch.Tensor | None = None,
@@ -551,10 +484,10 @@ def local_frames(
             points.detach(), idx, none if normals is None else normals.detach(),
             none if occlusion is None else occlusion.detach(), (cutoff * bandwidth) ** 2,
             1.0 / (bandwidth * bandwidth), int(min_neighbors), 1.0 / denom, covariance_weight == "squared")
-        diff = _NeighbourDiff.apply(points, idx, valid)
+        diff = NeighbourDiff.apply(points, idx, valid)
         nrm = None  # only the few-neighbour fallback below needs the unit normals
     else:
-        valid, diff, psi, w, centroid, evals, evecs, nrm = _frames_torch(
+        valid, diff, psi, w, centroid, evals, evecs, nrm = reference.local_frames(
             points, normals, occlusion, idx, bandwidth, sharpness_angle, covariance_weight, cutoff, min_neighbors)
     with torch.no_grad():
         if normals is not None:
@@ -587,9 +520,9 @@ def with_new_differences(frames: LocalFrames, points: torch.Tensor) -> LocalFram
     centroids and principal directions kept: the regularisers' gradient at moved points under
     frames fitted a few steps before (the weighted PCA is the costly part of a step)."""
     if _frames_kernel(points, "auto") is not None:  # the C++ difference and its scatter backward
-        diff = _NeighbourDiff.apply(points, frames.idx, frames.valid)
+        diff = NeighbourDiff.apply(points, frames.idx, frames.valid)
     else:
-        diff = (points.unsqueeze(1) - gather_neighbors(points, frames.idx)) * frames.valid.unsqueeze(-1).to(points.dtype)
+        diff = reference.neighbor_diff(points, frames.idx, frames.valid)
     return replace(frames, diff=diff)
 
 

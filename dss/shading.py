@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from . import reference
 from .cameras import Cameras
 
 __all__ = ["SunLights", "PointLight", "shade", "SHADING_CHANNELS", "plane_coefficients", "planes_inverse_depth",
@@ -89,13 +90,12 @@ class SunLights:
     def __call__(self, points, normals, cameras: Cameras, albedo=None) -> torch.Tensor:
         d_world = self.world_directions(cameras, normals)  # (V,L,3)
         V, L = d_world.shape[:2]
+        if L == 3 and self.one_light_per_channel():  # red, green, blue lights (the default): no mixing
+            return reference.sun_shade(normals, albedo, d_world, self.ambient)
         # one (N, 3) x (3, V L) product
         lam = (normals @ d_world.reshape(V * L, 3).T).clamp_min(0).view(-1, V, L)  # (N, V, L) diffuse terms
-        colors = self.colors.to(normals)
-        if L == 3 and self.one_light_per_channel():
-            rgb = lam + self.ambient  # red, green, blue lights (the default): no mixing
-        else:  # a K=L matmul is slow in BLAS for such thin matrices; broadcast instead
-            rgb = (lam[..., :, None] * colors).sum(-2) + self.ambient
+        # a K=L matmul is slow in BLAS for such thin matrices; broadcast instead
+        rgb = (lam[..., :, None] * self.colors.to(normals)).sum(-2) + self.ambient
         rgb = rgb.permute(1, 0, 2)  # (V, N, 3)
         if albedo is not None:
             rgb = rgb * albedo[None]

@@ -2,9 +2,10 @@
 
 Importing the package registers two resolvers the apps' configs use:
 
-- ``dss_help``: the ``--help`` text. Hydra's own template lists every config group under
-  ``conf/``, which all apps share, so ``dss-denoise --help`` would offer ``model=`` and ``scene=``
-  that it does not read.
+- ``dss_help``: ``${dss_help:<config name>}`` is the ``--help`` text of an app
+  (:func:`experiments.app_registry.help_text`: what the command does, its most-used options, the
+  config groups it reads; Hydra's own template lists every group under ``conf/``, which all apps
+  share). ``conf/hydra/default.yaml`` uses it.
 - ``dss_fresh``: ``${dss_fresh:<command>}`` is a fresh ``outputs/<command>/<timestamp>`` folder
   (see :mod:`experiments.outputs`), the same path every time it is resolved in one process, so
   that Hydra's run directory and the config's ``out_dir`` agree.
@@ -14,24 +15,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-_CONF = Path(__file__).resolve().parent.parent / "conf"
-
-
-def _help_template(*groups: str) -> str:
-    """The body of an app's Hydra help (``string.Template``: ``$FLAGS_HELP``, ``$CONFIG``), naming
-    only ``groups``; the config wraps it in Hydra's header and footer."""
-    lines = []
-    if groups:
-        lines += ["== Configuration groups ==", "Compose your configuration from these groups (group=option)"]
-        lines.append("")
-        for g in groups:
-            options = sorted(p.stem for p in (_CONF / g).glob("*.yaml"))
-            lines.append(f"{g}: {', '.join(options)}")
-        lines.append("")
-    lines += ["== Config ==", "Override anything in the config (foo.bar=value)", "", "$CONFIG", "",
-              "== Flags ==", "$FLAGS_HELP"]
-    return "\n".join(lines)
-
 
 def _register() -> None:
     try:
@@ -39,8 +22,10 @@ def _register() -> None:
     except ImportError:  # the benchmarks and figures run without omegaconf too
         return
 
-    def resolve(*groups):
-        return _help_template(*(str(g) for g in groups))
+    def resolve(config_name):
+        from experiments.app_registry import help_text
+
+        return help_text(str(config_name))
 
     if not OmegaConf.has_resolver("dss_help"):
         OmegaConf.register_new_resolver("dss_help", resolve)

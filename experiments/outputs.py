@@ -20,22 +20,47 @@ import shutil
 import time
 from pathlib import Path
 
-__all__ = ["OUTPUTS", "fresh_folder", "add_arguments", "folder", "publish_files"]
+__all__ = ["OUTPUTS", "fresh_folder", "link_latest", "add_arguments", "folder", "publish_files"]
 
 OUTPUTS = Path("outputs")
 
 
 def fresh_folder(command: str, root: Path | str = OUTPUTS) -> Path:
-    """``<root>/<command>/<timestamp>``, created; ``_2``, ``_3``, ... when that second is taken."""
+    """``<root>/<command>/<timestamp>``, created; ``_2``, ``_3``, ... when that second is taken.
+    ``<root>/<command>/latest`` then points at it (:func:`link_latest`)."""
     base = Path(root) / command / time.strftime("%Y-%m-%d_%H-%M-%S")
     path, n = base, 1
     while True:
         try:
             path.mkdir(parents=True, exist_ok=False)
+            link_latest(path)
             return path
         except FileExistsError:
             n += 1
             path = base.with_name(f"{base.name}_{n}")
+
+
+LATEST = "latest"
+
+
+def link_latest(run_dir: Path | str) -> Path | None:
+    """Point ``<run_dir's parent>/latest`` at ``run_dir`` (a relative symlink, so the tree can move),
+    replacing the link atomically: a reader sees the previous run or this one, never no link.
+    Returns the link, or None where it cannot be made (a file or folder of that name that is not
+    a link, a file system without symlinks), which costs the run nothing."""
+    run_dir = Path(run_dir)
+    link = run_dir.parent / LATEST
+    if run_dir.name == LATEST or (link.exists() and not link.is_symlink()):
+        return None
+    tmp = run_dir.parent / f".{LATEST}.{os.getpid()}.tmp"
+    try:
+        tmp.unlink(missing_ok=True)
+        os.symlink(run_dir.name, tmp, target_is_directory=True)
+        os.replace(tmp, link)  # rename(2): atomic, and it replaces an existing link
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        return None
+    return link
 
 
 def add_arguments(ap: argparse.ArgumentParser, published: str, what: str = "output folder") -> None:

@@ -41,7 +41,14 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from .augment import apply_flips, is_planes, resolve_flips
 from .metrics import pixel_coords
 from .networks import SIZE_MULTIPLE
-from .shards import ShardRef, noise_levels_of, open_shard, read_manifest, select_shards
+from .shards import (
+    ShardRef,
+    noise_levels_of,
+    open_shard,
+    read_manifest,
+    select_shards,
+    verify_shards,
+)
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +66,24 @@ def render_focal(render: dict[str, Any] | None, image_size: Sequence[int]) -> fl
     if render.get("fov_deg"):
         return 0.5 * float(image_size[1]) / math.tan(math.radians(float(render["fov_deg"])) / 2)
     raise ValueError("the dataset's render block has neither focal nor fov_deg")
+
+
+def _number(name: str, value, kind: type, optional: bool = False):
+    """``kind(value)``, or a ValueError naming the setting (``batch_size='abc' is not an integer``);
+    None passes when ``optional``."""
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or (kind is int and isinstance(value, float) and not value.is_integer()):
+        ok = False
+    else:
+        try:
+            value = kind(value)
+            ok = True
+        except (TypeError, ValueError):
+            ok = False
+    if not ok:
+        raise ValueError(f"{name}={value!r} is not {'an integer' if kind is int else 'a number'}")
+    return value
 
 
 class PairStream(IterableDataset):
@@ -274,6 +299,10 @@ class Pix2PixDataModule(L.LightningDataModule):
         num_workers, pin_memory, persistent_workers, prefetch_factor: DataLoader options.
         seed: shuffling/augmentation seed.
         drop_last: drop the last incomplete training batch.
+        verify: check every shard used against the manifest's sha256 when its split is set up
+            (once per file and process; :func:`pix2pix.shards.verify_shards`).
+
+    A setting of the wrong type is refused naming it (``batch_size='abc' is not an integer``).
     """
 
     def __init__(
@@ -294,23 +323,25 @@ class Pix2PixDataModule(L.LightningDataModule):
         prefetch_factor: int | None = None,
         seed: int = 0,
         drop_last: bool = True,
+        verify: bool = True,
     ):
         super().__init__()
         self.root = Path(root).expanduser()
-        self.noise_level = None if noise_level is None else float(noise_level)
-        self.batch_size = int(batch_size)
-        self.val_batch_size = int(val_batch_size or batch_size)
-        self.crop_size = crop_size
-        self.val_crop_size = val_crop_size
+        self.noise_level = _number("noise_level", noise_level, float, optional=True)
+        self.batch_size = _number("batch_size", batch_size, int)
+        self.val_batch_size = _number("val_batch_size", val_batch_size, int, optional=True) or self.batch_size
+        self.crop_size = _number("crop_size", crop_size, int, optional=True)
+        self.val_crop_size = _number("val_crop_size", val_crop_size, int, optional=True)
         self.flips_cfg = flips if isinstance(flips, str) or flips is None else list(flips)
-        self.crop_min_coverage = float(crop_min_coverage)
-        self.interleave = interleave
-        self.max_val_pairs = max_val_pairs
-        self.num_workers = int(num_workers)
+        self.crop_min_coverage = _number("crop_min_coverage", crop_min_coverage, float)
+        self.interleave = _number("interleave", interleave, int)
+        self.max_val_pairs = _number("max_val_pairs", max_val_pairs, int, optional=True)
+        self.num_workers = _number("num_workers", num_workers, int)
+        self.verify = bool(verify)
         self.pin_memory = pin_memory
         self.persistent_workers = persistent_workers and self.num_workers > 0
         self.prefetch_factor = prefetch_factor if self.num_workers > 0 else None
-        self.seed = int(seed)
+        self.seed = _number("seed", seed, int)
         self.drop_last = drop_last
         self.manifest: dict[str, Any] | None = None
         self.train_set: PairStream | None = None
@@ -348,6 +379,8 @@ class Pix2PixDataModule(L.LightningDataModule):
     def _stream(self, split: str, train: bool) -> PairStream:
         manifest = self._load_manifest()
         shards = select_shards(self.root, manifest, split, self.noise_level)
+        if self.verify:  # before any row is read: a memory map skips the zip CRC
+            verify_shards(shards, self.root)
         rank, world = self._rank()
         return PairStream(
             shards,

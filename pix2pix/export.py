@@ -200,10 +200,17 @@ def export_checkpoint(
     opset: int = DEFAULT_OPSET,
     overwrite: bool = False,
 ) -> tuple[Path, dict[str, str], nn.Module]:
-    """Lightning checkpoint (from ``dss-train``) -> ONNX file. Returns (path, metadata, generator)."""
+    """Lightning checkpoint (from ``dss-train``) -> ONNX file. Returns (path, metadata, generator).
+
+    A checkpoint whose generator holds NaN or inf weights (a diverged training) is refused
+    (ValueError) before anything is written."""
     from .module import load_generator
 
     gen, info = load_generator(ckpt_path)
+    bad = [k for k, v in gen.state_dict().items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ValueError(f"{ckpt_path}: the generator holds non-finite weights ({len(bad)} tensors, e.g. "
+                         f"{', '.join(bad[:3])}): the training diverged; export an earlier checkpoint")
     meta = build_metadata(info)
     size = info.get("train_crop_size") or 64
     example = (min(int(size), 64) // SIZE_MULTIPLE * SIZE_MULTIPLE,) * 2

@@ -33,8 +33,9 @@ full-image ``val/smape_full`` / ``val/noisy_smape_full``, and ``val/smape_reduct
 fix a background-snap threshold (:mod:`pix2pix.postprocess`), the same metrics of the snapped
 output, the denoiser as the runtime ships it, are logged as ``val/snap_{...}`` and
 ``val/snap_smape_reduction``. Each validation also writes an image
-grid (rows: noisy | output | clean) as PNG into ``<run dir>/val_grids/`` and sends it to the
-loggers that take images (TensorBoard, W&B).
+grid (columns noisy input | network output | clean target, labelled; small renders enlarged,
+:func:`make_grid`) as PNG into ``<run dir>/val_grids/`` and sends it to the loggers that take
+images (TensorBoard, W&B).
 
 The ``planes`` channel (batches with ``coords``, :mod:`pix2pix.datamodule`): every pixel holds a
 plane whose inverse depth at the pixel is ``a_0 x + a_1 y + a_2``. Two terms can join the L1 on
@@ -73,16 +74,27 @@ from .metrics import l1 as l1_metric
 from .metrics import planes_inverse_depth, planes_metric_sums, surface_pixels
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
-from .networks import PatchDiscriminator, ResNetGenerator, apply_coverage, covered, generator_from_config
+from .networks import (
+    PatchDiscriminator,
+    ResNetGenerator,
+    apply_coverage,
+    covered,
+    generator_from_config,
+)
 from .postprocess import background_snap_threshold, snap_background
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Pix2PixModule", "LinearDecay", "load_generator", "load_generator_weights", "CHECKPOINT_KEY",
-           "make_grid"]
+           "make_grid", "NonFiniteLossError"]
 
 CHECKPOINT_KEY = "dss_pix2pix"
 METRIC_NAMES = ("l1", "smape", "psnr")
+
+
+class NonFiniteLossError(ValueError):
+    """A training loss or validation metric is NaN or inf: training stops at once (a NaN model
+    would otherwise train on, be checkpointed and exported)."""
 
 
 class LinearDecay:
@@ -97,12 +109,43 @@ class LinearDecay:
         return 1.0 - max(0, epoch + 1 - self.n_epochs) / float(self.n_epochs_decay + 1)
 
 
+#: the grid's tiles are enlarged (nearest neighbour, by a whole factor) to at least this many pixels,
+#: so that the tiny preset's 32 px renders can be seen
+GRID_MIN_TILE = 192
+GRID_LABELS = ("noisy input", "network output", "clean target")
+
+
 def make_grid(noisy: torch.Tensor, output: torch.Tensor, clean: torch.Tensor) -> np.ndarray:
-    """Rows noisy | output | clean for each image: (B,3,H,W) x3 -> (B*H, 3*W, 3) uint8 in [0,255]."""
+    """A header row naming the columns, then per image noisy | output | clean.
+
+    (B, 3, H, W) x 3 -> (header + B H s, 3 W s, 3) uint8, with ``s`` the smallest whole factor that
+    makes a tile at least :data:`GRID_MIN_TILE` pixels on its longer side (1 for larger renders).
+    """
     rows = torch.cat([noisy, output, clean], dim=3)  # (B, 3, H, 3W)
     img = torch.cat(list(rows), dim=1)  # (3, B*H, 3W)
     img = img.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy()
-    return (img * 255.0 + 0.5).astype(np.uint8)
+    img = (img * 255.0 + 0.5).astype(np.uint8)
+    H, W = noisy.shape[-2:]
+    s = max(1, -(-GRID_MIN_TILE // max(H, W)))
+    if s > 1:
+        img = img.repeat(s, axis=0).repeat(s, axis=1)
+    return np.concatenate([_grid_header(GRID_LABELS, W * s), img], axis=0)
+
+
+def _grid_header(labels: tuple[str, ...], tile_width: int, height: int = 24) -> np.ndarray:
+    """(height, len(labels) * tile_width, 3) uint8: each label centred over its column, black on white."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    header = Image.new("RGB", (len(labels) * tile_width, height), (255, 255, 255))
+    draw = ImageDraw.Draw(header)
+    try:
+        font = ImageFont.load_default(size=14)
+    except (TypeError, OSError):  # a Pillow without FreeType: its small bitmap font
+        font = ImageFont.load_default()
+    for i, text in enumerate(labels):
+        x = i * tile_width + max(0.0, (tile_width - draw.textlength(text, font=font)) / 2)
+        draw.text((x, 4), text, fill=(0, 0, 0), font=font)
+    return np.asarray(header)
 
 
 def _png_bytes(img: np.ndarray) -> bytes:
@@ -235,6 +278,7 @@ class Pix2PixModule(L.LightningModule):
             pred_fake = self.discriminator(self._d_input(noisy, fake.detach()))
             loss_d = 0.5 * (F.mse_loss(pred_real, torch.ones_like(pred_real))
                             + F.mse_loss(pred_fake, torch.zeros_like(pred_fake)))
+            self._check_finite("train/loss_d", loss_d, batch, batch_idx)
             opt_d.zero_grad(set_to_none=True)
             self.manual_backward(loss_d)
             opt_d.step()
@@ -265,6 +309,7 @@ class Pix2PixModule(L.LightningModule):
             loss_gan = F.mse_loss(pred, torch.ones_like(pred))
             loss_g = loss_g + self.hparams.lambda_gan * loss_gan
             logs["train/loss_g_gan"] = loss_gan.detach()
+        self._check_finite("train/loss_g", loss_g, batch, batch_idx)
         opt_g.zero_grad(set_to_none=True)
         self.manual_backward(loss_g)
         opt_g.step()
@@ -277,6 +322,16 @@ class Pix2PixModule(L.LightningModule):
         self._throughput[0] += noisy.shape[0]
         self._throughput[1] += time.perf_counter() - t0
         return loss_g.detach()
+
+    def _check_finite(self, name: str, loss: torch.Tensor, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        """Stop before a non-finite loss reaches the weights, saying whether the batch was to blame."""
+        if bool(torch.isfinite(loss)):
+            return
+        bad = [k for k in ("noisy", "clean") if not bool(torch.isfinite(batch[k]).all())]
+        cause = (f"the batch's {' and '.join(bad)} images hold NaN/inf pixels (corrupt training data)" if bad
+                 else "the model diverged (lower model.lr, or check the data)")
+        raise NonFiniteLossError(f"{name} = {float(loss)} at epoch {self.current_epoch}, global step "
+                                 f"{self.global_step}, batch {batch_idx}: {cause}; training stopped")
 
     def on_train_epoch_start(self) -> None:
         # Lightning calls set_epoch only on samplers; our iterable stream reshuffles per epoch.
@@ -355,6 +410,12 @@ class Pix2PixModule(L.LightningModule):
         means.update(_planes_means(planes))
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
+        bad = sorted(k for k in ("l1", "smape", "noisy_l1", "noisy_smape") if not np.isfinite(means[k]))
+        if bad:
+            raise NonFiniteLossError(f"validation metrics are not finite ({', '.join(f'val/{k} = {means[k]}' for k in bad)}) "
+                                     f"at epoch {self.current_epoch}: "
+                                     + ("the validation data holds NaN/inf pixels" if any(k.startswith("noisy") for k in bad)
+                                        else "the model's output is not finite (it diverged)"))
         means["l1_reduction"] = 1.0 - means["l1"] / max(means["noisy_l1"], 1e-12)
         means["psnr_gain"] = means["psnr"] - means["noisy_psnr"]
         if cov[0] is not None:
@@ -382,7 +443,7 @@ class Pix2PixModule(L.LightningModule):
             try:
                 if hasattr(logger, "log_image"):  # W&B
                     logger.log_image(key="val/grid", images=[grid],
-                                     caption=["rows: noisy | output | clean"])
+                                     caption=["columns: " + " | ".join(GRID_LABELS)])
                 elif hasattr(getattr(logger, "experiment", None), "add_image"):  # TensorBoard
                     logger.experiment.add_image("val/grid", grid, step, dataformats="HWC")
             except Exception as e:  # a logger failing to take an image must not stop training

@@ -7,8 +7,10 @@
 
 Errors are explicit: a missing file (FileNotFoundError), a file that is not ONNX or is an ONNX
 model but not one of our denoisers (:class:`DenoiserFormatError`, a ValueError, naming the
-file), a wrong channel count or a size that is not a multiple of 4 (ValueError naming the
-shape; ``pad=True`` pads by reflection and crops back instead).
+file), a graph whose declared input and output shapes are not images of one size and channel
+count (checked at load; :meth:`OnnxDenoiser.check_render` checks them against the renders it
+will get, running one blank image), a wrong channel count or a size that is not a multiple of
+4 (ValueError naming the shape; ``pad=True`` pads by reflection and crops back instead).
 
 Outputs are background-snapped (:mod:`pix2pix.postprocess`: pixels darker than half the training
 renders' ambient term become 0) unless ``snap_background=False``.
@@ -107,9 +109,56 @@ class OnnxDenoiser:
         self.input_name = inputs[0].name
         self.channels = int(self.metadata.get("dss.channels", 3))
         self.size_multiple = int(self.metadata.get("dss.size_multiple", 4))
+        self._check_graph(list(inputs[0].shape), self.session.get_outputs())
         #: output pixels below this intensity are set to 0 (None: no snap)
         self.background_threshold = (background_snap_threshold(self.render_settings)
                                      if snap_background else None)
+
+    def _check_graph(self, shape_in: list, outputs) -> None:
+        """The graph's declared shapes: (B, C, H, W) in, one (B, C, H, W) image out with the same
+        channels and size (dims given as names are checked by :meth:`check_render`)."""
+        c_in = shape_in[1]
+        if isinstance(c_in, int) and c_in != self.channels:
+            raise DenoiserFormatError(f"{self.path}: the graph takes {c_in}-channel images, its metadata says "
+                                      f"dss.channels = {self.channels}")
+        if not outputs or len(outputs[0].shape) != 4:
+            raise DenoiserFormatError(f"{self.path}: expected a (B, C, H, W) image output, got "
+                                      f"{[(o.name, o.shape) for o in outputs]}")
+        shape_out = list(outputs[0].shape)
+        for axis, what in ((1, "channels"), (2, "rows"), (3, "columns")):
+            a, b = shape_in[axis], shape_out[axis]
+            if isinstance(a, int) and isinstance(b, int) and a != b:
+                raise DenoiserFormatError(f"{self.path}: the graph maps {shape_in} to {shape_out} ({a} input {what}, "
+                                          f"{b} output {what}); a denoiser returns images of its input's shape")
+        if isinstance(shape_out[1], int) and shape_out[1] != self.channels:
+            raise DenoiserFormatError(f"{self.path}: the graph returns {shape_out[1]}-channel images for "
+                                      f"{self.channels}-channel input; a denoiser returns images of its input's shape")
+
+    def check_render(self, image_size, channels: int = 3) -> None:
+        """Refuse (DenoiserFormatError, one line) a model that cannot denoise renders of
+        ``channels`` x ``image_size`` (H, W): a channel count or fixed size its graph does not
+        take, or an output of another shape. Runs one blank image of that size through the
+        model (padded to the size multiple), since a graph's dims given as names say nothing."""
+        h, w = (int(image_size[0]), int(image_size[1]))
+        if channels != self.channels:
+            raise DenoiserFormatError(f"{self.path}: the model takes {self.channels}-channel images, the renders have "
+                                      f"{channels}")
+        shape_in = self.session.get_inputs()[0].shape
+        m = self.size_multiple
+        ph, pw = h + (-h) % m, w + (-w) % m
+        for axis, size in ((2, ph), (3, pw)):
+            if isinstance(shape_in[axis], int) and shape_in[axis] != size:
+                raise DenoiserFormatError(f"{self.path}: the graph takes images of fixed size {shape_in[2:]}, the "
+                                          f"renders are {h}x{w}")
+        x = np.zeros((1, self.channels, ph, pw), np.float32)
+        try:
+            y = self.session.run(None, {self.input_name: x})[0]
+        except Exception as e:  # onnxruntime's own classes: one line
+            raise DenoiserFormatError(f"{self.path}: the model fails on a {h}x{w} render "
+                                      f"({str(e).strip().splitlines()[0][:200]})") from None
+        if tuple(y.shape) != x.shape:
+            raise DenoiserFormatError(f"{self.path}: the model maps {self.channels}x{ph}x{pw} renders to shape "
+                                      f"{tuple(y.shape[1:])}; a denoiser returns images of its input's shape")
 
     # ---- metadata views ------------------------------------------------------------------------
     @property

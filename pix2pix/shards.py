@@ -1,4 +1,5 @@
-"""Reading the training-pair dataset format ``dss-pairs/1`` (see notes/SHARDS.md).
+"""Reading the training-pair dataset format ``dss-pairs/1`` (written by :mod:`data_prep.shards`;
+data_prep/README.md, "Dataset formats").
 
 A dataset is ``<root>/manifest.json`` plus uncompressed ``.npz`` shards holding ``noisy`` and
 ``clean`` (n, H, W, 3) float16 renders, ``mask`` (n, H, W) bool and ``pair_id`` (n,) int64.
@@ -6,11 +7,14 @@ A dataset is ``<root>/manifest.json`` plus uncompressed ``.npz`` shards holding 
 Shards are opened as **memory maps** (:func:`open_shard`): an uncompressed ``.npz`` is a zip
 archive of ``.npy`` files stored verbatim, so each array can be mapped at its byte offset and
 only the rows a reader touches are paged in. ``np.load(..., mmap_mode="r")`` does not do this
-for ``.npz`` files (it reads whole members), hence the small zip-header parser here.
+for ``.npz`` files (it reads whole members), hence the small zip-header parser here. A memory map
+skips the zip CRC, so a shard is checked against the manifest's sha256 before it is used
+(:func:`verify_shards`, once per file and process).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import struct
@@ -29,6 +33,7 @@ __all__ = [
     "noise_levels_of",
     "select_shards",
     "open_shard",
+    "verify_shards",
 ]
 
 FORMAT = "dss-pairs/1"
@@ -41,12 +46,14 @@ class DatasetFormatError(ValueError):
 
 @dataclass(frozen=True)
 class ShardRef:
-    """One shard of a split: absolute ``path``, ``num_pairs`` rows, its ``noise_level``."""
+    """One shard of a split: absolute ``path``, ``num_pairs`` rows, its ``noise_level``, and the
+    manifest's ``sha256`` of the file (None in a manifest without one)."""
 
     path: Path
     num_pairs: int
     noise_level: float | None
     split: str
+    sha256: str | None = None
 
 
 def read_manifest(root: str | Path) -> dict[str, Any]:
@@ -115,7 +122,7 @@ def select_shards(
         p = root / s["path"]
         if not p.is_file():
             raise DatasetFormatError(f"{root / 'manifest.json'} lists {s['path']}, but {p} is missing")
-        out.append(ShardRef(p, int(s["num_pairs"]), None if lvl is None else float(lvl), split))
+        out.append(ShardRef(p, int(s["num_pairs"]), None if lvl is None else float(lvl), split, s.get("sha256")))
     if not out:
         splits = sorted({s["split"] for s in manifest["shards"]})
         raise DatasetFormatError(
@@ -124,6 +131,43 @@ def select_shards(
             + f" (splits present: {splits}, noise levels: {noise_levels_of(manifest)})"
         )
     return out
+
+
+#: files whose sha256 matched, as (path, size, mtime): each shard is hashed once per process
+_verified: set[tuple[str, int, int]] = set()
+
+
+def verify_shards(shards, root: str | Path | None = None) -> int:
+    """Check each shard's bytes against the manifest's sha256 (shards without one are skipped);
+    returns how many were hashed. Raises DatasetFormatError naming the first that differs: a
+    corrupt or changed file would otherwise train on garbage (its memory map skips the zip CRC)."""
+    hashed = 0
+    for ref in shards:
+        if not ref.sha256:
+            continue
+        st = ref.path.stat()
+        key = (str(ref.path.resolve()), st.st_size, st.st_mtime_ns)
+        if key in _verified:
+            continue
+        h = hashlib.sha256()
+        with open(ref.path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        hashed += 1
+        if h.hexdigest() != ref.sha256:
+            where = f" ({Path(root) / 'manifest.json'})" if root is not None else ""
+            raise DatasetFormatError(f"{ref.path}: its sha256 does not match the manifest's{where}: the shard is "
+                                     "corrupt or was changed after it was written; regenerate it (dss-prep rewrites "
+                                     "shards whose hash does not match)")
+        _verified.add(key)
+    return hashed
+
+
+def _short(e: BaseException, limit: int = 160) -> str:
+    """The first line of an exception's message, at most ``limit`` characters (numpy's header
+    errors quote the whole header)."""
+    text = (str(e).strip().splitlines() or [type(e).__name__])[0]
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 _LOCAL_HEADER = struct.Struct("<IHHHHHIIIHH")  # zip local file header, 30 bytes
@@ -180,10 +224,10 @@ def open_shard(path: str | Path, image_size: tuple[int, int] | None = None,
     path = Path(path)
     try:
         arrays = _npz_memmaps(path)
-    except (zipfile.BadZipFile, ValueError, OSError, struct.error) as e:
+    except Exception as e:  # zip, struct, numpy header (even tokenize) errors: the file is not a shard
         if isinstance(e, DatasetFormatError):
             raise
-        raise DatasetFormatError(f"{path}: not a readable .npz shard ({e})") from e
+        raise DatasetFormatError(f"{path}: not a readable .npz shard ({type(e).__name__}: {_short(e)})") from e
     missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
     if missing:
         raise DatasetFormatError(f"{path}: missing arrays {missing} (has {sorted(arrays)})")

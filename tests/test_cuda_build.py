@@ -27,8 +27,8 @@ import torch
 from scenes import random_scene
 
 from dss import _ext_cuda
-from dss.rasterizer import reference as ref
-from dss.splats import project_splats, tangent_planes
+from dss import reference as ref
+from dss.reference import project_splats, tangent_planes
 
 CSRC = Path(_ext_cuda.__file__).parent / "csrc"
 EMU = Path(__file__).parent / "cuda_emu"

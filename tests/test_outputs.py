@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -39,6 +40,57 @@ def test_output_folder_choice(tmp_path, monkeypatch):
     assert not (tmp_path / "results").exists()
 
 
+def test_latest_points_at_the_newest_run(tmp_path, monkeypatch):
+    """outputs/<command>/latest follows each new run folder, as a relative link (the tree can
+    move); a real file or folder named latest is left alone."""
+    monkeypatch.chdir(tmp_path)
+    latest = Path("outputs") / "cmd" / "latest"
+    for _ in range(3):
+        run = outputs.fresh_folder("cmd")
+        (run / "model.onnx").write_text(run.name)
+        assert latest.is_symlink() and os.readlink(latest) == run.name
+        assert (latest / "model.onnx").read_text() == run.name  # a pasted path reaches this run's file
+    assert not list(latest.parent.glob(".latest.*"))  # no temporary link left behind
+    moved = tmp_path / "moved"
+    (tmp_path / "outputs").rename(moved)
+    assert (moved / "cmd" / "latest" / "model.onnx").read_text() == run.name
+    mine = tmp_path / "mine"
+    (mine / "latest").mkdir(parents=True)
+    assert outputs.link_latest(mine / "run") is None and (mine / "latest").is_dir()
+
+
+def test_a_hydra_run_links_latest(tmp_path):
+    """`dss-render` under Hydra (conf/hydra/default.yaml's JobStart callback): outputs/render/latest
+    is the run directory, and a second run moves it; a run directory given elsewhere is not linked."""
+    import subprocess
+    import sys
+
+    from scenes import sphere_points
+
+    from dss.pointcloud import PointCloud, save_ply
+
+    p, n = sphere_points(300, 0.4)
+    save_ply(tmp_path / "s.ply", PointCloud(p, n))
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    seen = []
+    for _ in range(2):
+        r = subprocess.run([sys.executable, "-m", "experiments.apps.render", str(tmp_path / "s.ply"), "views=1",
+                            "image_size=16"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        latest = tmp_path / "outputs" / "render" / "latest"
+        assert latest.is_symlink() and (latest / "metrics.json").is_file()
+        seen.append(os.readlink(latest))
+    assert seen[0] != seen[1] and sorted(seen) == sorted(
+        p.name for p in latest.parent.iterdir() if p.is_dir() and not p.is_symlink())
+    # a run directory given elsewhere (a table's per-case runs) gets no link beside it
+    r = subprocess.run([sys.executable, "-m", "experiments.apps.render", str(tmp_path / "s.ply"), "views=1",
+                        "image_size=16", "hydra.run.dir=runs/case/method"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert [p.name for p in (tmp_path / "runs" / "case").iterdir()] == ["method"]
+    assert os.readlink(latest) == seen[1]
+
+
 def test_publish_files_replaces_and_removes_stale(tmp_path):
     src, dest = tmp_path / "run", tmp_path / "pub"
     src.mkdir()
@@ -58,8 +110,9 @@ def test_figure_command_writes_a_fresh_folder_by_default(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     assert two_points.main(["--trials", "0", "--steps", "6", "--snapshots", "0", "6"]) == 0
-    runs = list((tmp_path / "outputs" / "dss-fig-twopoints").iterdir())
+    runs = [p for p in (tmp_path / "outputs" / "dss-fig-twopoints").iterdir() if not p.is_symlink()]
     assert len(runs) == 1 and (runs[0] / "two_points.png").is_file() and (runs[0] / "two_points.json").is_file()
+    assert (tmp_path / "outputs" / "dss-fig-twopoints" / "latest").resolve() == runs[0].resolve()
     assert not (tmp_path / "results").exists()
 
 
@@ -70,7 +123,7 @@ def test_runtime_chart_writes_a_fresh_folder_by_default(tmp_path, monkeypatch):
     cuda = ROOT / "results" / "bench" / "gpu" / "h100" / "runtime_table_cuda_measured_floors.json"
     monkeypatch.chdir(tmp_path)
     runtime_chart.run(["--cpu", str(cpu), "--cuda", str(cuda)])
-    runs = list((tmp_path / "outputs" / "dss-fig-runtime").iterdir())
+    runs = [p for p in (tmp_path / "outputs" / "dss-fig-runtime").iterdir() if not p.is_symlink()]
     assert len(runs) == 1 and {p.name for p in runs[0].iterdir()} == {"runtime_chart.png", "runtime_chart.json"}
 
 
@@ -83,7 +136,7 @@ def test_results_index_writes_the_tracked_readme_only_with_publish(tmp_path, mon
     monkeypatch.chdir(tmp_path)
     assert main(["--results", str(res)]) == 0
     assert not (res / "README.md").exists()
-    written = list((tmp_path / "outputs" / "dss-results").glob("*/README.md"))
+    written = [p for p in (tmp_path / "outputs" / "dss-results").glob("*/README.md") if not p.parent.is_symlink()]
     assert len(written) == 1 and written[0].read_text() == build(res)
     assert main(["--results", str(res), "--publish"]) == 0
     assert (res / "README.md").read_text() == build(res)

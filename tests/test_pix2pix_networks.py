@@ -340,3 +340,27 @@ def test_validation_grids_kept_on_disk_are_capped(tmp_path):
     kept = sorted(p.name for p in (tmp_path / "val_grids").glob("*.png"))
     assert kept == ["epoch000-step0000000.png", "epoch004-step0000040.png", "epoch005-step0000050.png"]
     assert (tmp_path / "val_grids" / kept[0]).stat().st_mode & 0o044 == 0o044
+
+
+def test_validation_grid_is_labelled_and_small_renders_are_enlarged():
+    """make_grid: a header naming the three columns, then per image noisy | output | clean, each
+    32 px render enlarged by a whole factor (nearest neighbour: every source pixel a block)."""
+    from pix2pix.module import GRID_LABELS, GRID_MIN_TILE, make_grid
+
+    g = torch.Generator().manual_seed(0)
+    noisy, output, clean = (torch.rand(2, 3, 32, 24, generator=g) for _ in range(3))
+    grid = make_grid(noisy, output, clean)
+    s = -(-GRID_MIN_TILE // 32)
+    head = grid.shape[0] - 2 * 32 * s
+    assert grid.dtype == np.uint8 and grid.shape == (head + 2 * 32 * s, 3 * 24 * s, 3) and 0 < head <= 32
+    for col in range(len(GRID_LABELS)):  # each column's label: dark text on the white header
+        band = grid[:head, col * 24 * s:(col + 1) * 24 * s]
+        assert band.min() < 128 and (band == 255).mean() > 0.5
+    body = grid[head:]
+    for b in range(2):
+        for col, t in enumerate((noisy, output, clean)):
+            tile = body[b * 32 * s:(b + 1) * 32 * s, col * 24 * s:(col + 1) * 24 * s]
+            want = (t[b].permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+            assert np.array_equal(tile[::s, ::s], want) and np.array_equal(tile, want.repeat(s, 0).repeat(s, 1))
+    big = make_grid(*(torch.rand(1, 3, 256, 256, generator=g) for _ in range(3)))
+    assert big.shape[1] == 3 * 256  # renders of GRID_MIN_TILE px or more keep their size

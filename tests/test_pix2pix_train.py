@@ -14,9 +14,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from experiments.apps.train import instantiate_callbacks, instantiate_loggers, run
+from experiments.apps.train import instantiate_all, run
 from pix2pix.datamodule import PairStream, Pix2PixDataModule
-from pix2pix.module import Pix2PixModule
+from pix2pix.module import GRID_MIN_TILE, Pix2PixModule
 from pix2pix.networks import PatchDiscriminator, ResNetGenerator
 
 try:
@@ -93,13 +93,26 @@ def test_group_options_instantiate(group, tmp_path, wandb_offline_env):
             trainer = hydra.utils.instantiate(cfg.trainer, logger=False, callbacks=[])
             assert isinstance(trainer, L.Trainer)
         elif group == "logger":
-            loggers = instantiate_loggers(cfg.get("logger"))
+            loggers = instantiate_all(cfg.get("logger"))
             assert (len(loggers) == 0) == (option == "none")
             if option == "wandb":
                 assert loggers[0]._offline is True  # offline unless the user opts in
         else:
-            cbs = instantiate_callbacks(cfg.get("callbacks"))
+            cbs = instantiate_all(cfg.get("callbacks"))
             assert (len(cbs) == 0) == (option == "none")
+
+
+def test_the_quick_path_stops_on_its_time_budget(tmp_path):
+    """experiment=quick (the README's quick path): the tiny model on dss-prep's tiny dataset, and
+    trainer.max_time ends the run, not max_epochs (the trainer group's 10 would end it first)."""
+    cfg = compose_train(["experiment=quick", f"output_dir={tmp_path}"])
+    assert cfg.model.name == "tiny" and cfg.data.root == "data/pairs-tiny" and cfg.data.noise_level == 0.01
+    assert cfg.torch_threads == 1 and cfg.trainer.max_time == "00:00:05:00"
+    trainer = hydra.utils.instantiate(cfg.trainer, logger=False, callbacks=[])
+    # a 32 px tiny dataset runs thousands of epochs in 5 minutes: only the time limit stops it
+    assert trainer.max_epochs >= 10_000
+    short = compose_train(["experiment=quick", "trainer.max_time=00:00:02:00", f"output_dir={tmp_path}"])
+    assert short.trainer.max_time == "00:00:02:00"
 
 
 @pytest.mark.parametrize("exp,level", [("noise_0.3pct", 0.003), ("noise_1pct", 0.01),
@@ -259,7 +272,7 @@ def _assert_same_opt_state(a: dict, b: dict):
             assert torch.equal(torch.as_tensor(a["state"][k][name]), torch.as_tensor(b["state"][k][name]))
 
 
-def test_kill_and_resume_continue_exactly(pairs_root, tmp_path, monkeypatch):
+def test_kill_and_resume_continue_exactly(pairs_root, tmp_path):
     """Uninterrupted 3 epochs == 2 epochs, killed in epoch 3, resumed from last.ckpt."""
     base = ["trainer.max_epochs=3", "trainer.deterministic=true"]
     cfg_a = compose_train(tiny_overrides(pairs_root, tmp_path / "a", *base, "export_onnx=false"))
@@ -283,11 +296,7 @@ def test_kill_and_resume_continue_exactly(pairs_root, tmp_path, monkeypatch):
             restored["opt"] = _opt_states(trainer)
 
     cfg_c = compose_train(tiny_overrides(pairs_root, tmp_path / "c", *base, f"ckpt_path={last_b}"))
-    from experiments.apps import train as train_app
-
-    orig = train_app.instantiate_callbacks
-    monkeypatch.setattr(train_app, "instantiate_callbacks", lambda c: orig(c) + [Probe()])
-    res_c = run(cfg_c)
+    res_c = run(cfg_c, extra_callbacks=[Probe()])
     # the resumed run starts at the saved step with the saved optimizer state ...
     assert restored["step"] == ck_b["global_step"]
     for got, saved in zip(restored["opt"], ck_b["optimizer_states"]):
@@ -333,11 +342,9 @@ def test_last_checkpoint_is_written_every_epoch_without_improvement(pairs_root, 
     assert last["global_step"] == 2 * best["global_step"]  # saved after epoch 2 all the same
 
 
-def test_sigterm_saves_the_step_reached_and_resume_continues_there(pairs_root, tmp_path, monkeypatch):
+def test_sigterm_saves_the_step_reached_and_resume_continues_there(pairs_root, tmp_path):
     """A run stopped by SIGTERM mid-epoch writes last.ckpt at the step it reached; resuming
     from it starts at that step with the saved optimiser state and ends at the planned step."""
-    from experiments.apps import train as train_app
-
     base = ["trainer.max_epochs=2"]
     stop = [f"+callbacks.stop._target_={__name__}.SigtermAt", "+callbacks.stop.epoch=1", "+callbacks.stop.batch=1"]
     cfg = compose_train(tiny_overrides(pairs_root, tmp_path / "a", *base, *stop, "export_onnx=false"))
@@ -355,10 +362,8 @@ def test_sigterm_saves_the_step_reached_and_resume_continues_there(pairs_root, t
             restored["step"] = trainer.global_step
             restored["opt"] = _opt_states(trainer)
 
-    orig = train_app.instantiate_callbacks
-    monkeypatch.setattr(train_app, "instantiate_callbacks", lambda c: orig(c) + [Probe()])
     res = run(compose_train(tiny_overrides(pairs_root, tmp_path / "b", *base, f"ckpt_path={last}",
-                                           "export_onnx=false")))
+                                           "export_onnx=false")), extra_callbacks=[Probe()])
     assert restored["step"] == ck["global_step"]
     for got, saved in zip(restored["opt"], ck["optimizer_states"]):
         _assert_same_opt_state(got, saved)
@@ -381,7 +386,8 @@ def test_run_dir_contents_and_export(trained_run):
     import matplotlib.image
 
     img = matplotlib.image.imread(grids[-1])
-    assert img.shape[:2] == (2 * 32, 3 * 32)  # 2 images, rows of noisy | output | clean
+    s = -(-GRID_MIN_TILE // 32)  # 32 px renders, enlarged to be seen
+    assert img.shape[:2] == (24 + 2 * 32 * s, 3 * 32 * s)  # a header, 2 images, columns noisy | output | clean
     bv = metrics["best_val"]
     for k in ("val/l1", "val/smape", "val/psnr", "val/noisy_l1", "val/noisy_smape",
               "val/noisy_psnr", "val/smape_reduction"):

@@ -175,14 +175,14 @@ def test_cpp_neighbour_differences_gradcheck():
     nb = find_neighbors(p, 6)
     idx = nb.idx.clone()
     idx[::7, -1] = -1
+    from dss.autograd import NeighbourDiff
     from dss.knn import Neighbors
-    from dss.regularizers import _NeighbourDiff
 
     fr = local_frames(p, None, None, bandwidth=bandwidth_for(p), neighbors=Neighbors(idx=idx, dist=nb.dist),
                       pca_backend="cpp")
     assert not fr.valid.all()
     q = p.clone().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda x: _NeighbourDiff.apply(x, fr.idx, fr.valid), (q,))
+    assert torch.autograd.gradcheck(lambda x: NeighbourDiff.apply(x, fr.idx, fr.valid), (q,))
 
 
 def test_pca_backend_choice_is_checked():

@@ -249,7 +249,7 @@ def test_occlusion_depth_plane_shrinks_a_sphere(backend, request):
 
 def test_tangent_planes_reproduce_the_centre_depth():
     """At the splat's own centre pixel the plane depth is the centre depth; "center" is constant."""
-    from dss.splats import project_splats, tangent_planes
+    from dss.reference import project_splats, tangent_planes
 
     pts, nrm, cams, sigma, _ = random_scene(3, n=200)
     packed = project_splats(pts, nrm, cams, sigma).packed
@@ -269,7 +269,7 @@ def test_tangent_plane_kernel_matches_its_torch_twin(cpp_backend):
     behind the camera get 1 / z = 0 in "center" mode. (Planes nearly through the camera centre, n . p ~ 0, are
     ill-conditioned: both sides' coefficients are then rounding noise, so they are left out.)"""
     from dss import _ext
-    from dss.splats import tangent_planes
+    from dss.reference import tangent_planes
 
     mod = _ext.load_cpu()
     pts, nrm, cams, _, _ = random_scene(4, n=3001, views=5)
@@ -381,7 +381,7 @@ def test_kernel_uses_every_thread_and_gives_the_same_bits(cpp_backend):
     import sys
 
     from dss import _ext
-    from dss.splats import tangent_planes
+    from dss.reference import tangent_planes
 
     if sys.platform.startswith("linux"):
         assert _ext.openmp_enabled() is True
@@ -437,11 +437,11 @@ def test_blend_backward_with_the_mask_gives_the_bits_without_it(cpp_backend):
 def test_cpp_projection_backward_equals_torch_autograd(cpp_backend):
     """project_splats_backward (the C++ projection's hand-written backward that render() uses
     with the cpp backend) gives the gradients torch autograd takes through
-    dss.splats.project_splats, for every differentiable field (centre, conic, peak weight, depth,
+    dss.reference.project_splats, for every differentiable field (centre, conic, peak weight, depth,
     extents) with normals of any length and gradient rows that are zero (alone and in groups), and
     the same bits on 1 and 2 threads."""
     from dss import _ext
-    from dss.splats import project_splats
+    from dss.reference import project_splats
 
     pts, nrm, cams, sigma, _ = random_scene(11, n=400, views=3, size=(48, 64))
     nrm = nrm * (0.5 + torch.rand(len(nrm), 1, generator=torch.Generator().manual_seed(1)))
@@ -550,7 +550,7 @@ def test_vector_visibility_path_gives_the_scalar_bits(K, C, window, size, cpp_ba
     across row ends (VisFlatPlan), whose lanes are moved to their columns' partials; the others
     the row walk. Narrower windows take the scalar path (nothing to compare)."""
     from dss import _ext
-    from dss.splats import tangent_planes
+    from dss.reference import tangent_planes
 
     mod = _ext.load_cpu()
     levels = vector_levels(mod)

@@ -50,7 +50,7 @@ def _step(p, nrm, cams, target_p, backend: str, settings: RenderSettings, kind: 
     nn = nrm.to(dev).clone().requires_grad_(kind == "normal")
     out = render(pp, nn, cams, settings, backend=backend)
     # the kernels both ways: the blend (and the projection, the sun shader) are the kernels' own
-    assert type(out.images.grad_fn).__name__ == "_KernelBlendBackward"
+    assert type(out.images.grad_fn).__name__ == "KernelBlendBackward"
     ((out.images - target) ** 2).sum().backward()
     g = (pp if kind == "position" else nn).grad
     return out.images.detach().cpu(), out.mask.cpu(), g.cpu()

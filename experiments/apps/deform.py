@@ -26,7 +26,14 @@ from dss.cameras import fibonacci_sphere, fit_distance, focal_from_fov, look_at,
 from dss.io_utils import atomic_savefig, atomic_write_json
 from dss.metrics import evaluate, normal_error_to_points, spacing_stats
 from dss.optimize import MultiViewOptimizer, OptimizerConfig
-from dss.pointcloud import PointCloud, PointCloudError, load_ply, normalize_unit_diagonal, save_ply
+from dss.pointcloud import (
+    PointCloud,
+    PointCloudError,
+    centred_cloud,
+    load_ply,
+    normalize_unit_diagonal,
+    save_ply,
+)
 from dss.render import render, resolve_backend
 from dss.topology import openings
 from dss.viz import image_grid, save_png, to_uint8
@@ -57,7 +64,8 @@ def load_target(path: str, n_mesh_samples: int, seed: int = 0) -> PointCloud:
         mesh.compute_triangle_normals()
         o3d.utility.random.seed(int(seed))
         pcd = mesh.sample_points_poisson_disk(int(n_mesh_samples), use_triangle_normal=True)
-        return PointCloud(np.asarray(pcd.points, np.float32), np.asarray(pcd.normals, np.float32))
+        # float64 samples: a mesh far from the origin is centred before they become float32
+        return centred_cloud(np.asarray(pcd.points, np.float64), np.asarray(pcd.normals, np.float32), source=str(p))
     return load_ply(p)
 
 
@@ -172,7 +180,6 @@ ARTEFACTS = ("final.ply", "snapshots/*.png", "snapshots.png", "loss_curve.png", 
 def run(cfg: DictConfig) -> dict:
     out = run_dir(cfg)
     claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
-    save_config(cfg, out)
     torch.manual_seed(int(cfg.seed))
     gen = torch.Generator().manual_seed(int(cfg.seed))
     opt_cfg = OptimizerConfig(**OmegaConf.to_container(cfg.optimizer, resolve=True))
@@ -187,6 +194,7 @@ def run(cfg: DictConfig) -> dict:
         tp, _, _ = normalize_unit_diagonal(tp)
     tn = target.normals
     sp, sn = start_shape(cfg, gen)
+    save_config(cfg, out)  # the inputs are read: the run starts its work (a refused run writes nothing)
     size = int(cfg.image_size)
     radius = float(tp.norm(dim=1).max())
     sampler = None
@@ -239,7 +247,10 @@ def run(cfg: DictConfig) -> dict:
     # the last column is the output: after the final projection and normal re-fit, if configured
     snaps[final_step] = _snapshot(result.points, result.normals, snap_cams, settings, cfg.shading, backend)
 
-    save_ply(out / "final.ply", PointCloud(result.points, result.normals))
+    # normalize=false: in the target's own frame (a target centred on load gets its offset back)
+    own = not cfg.normalize
+    save_ply(out / "final.ply", PointCloud(result.points, result.normals, offset=target.offset if own else None,
+                                           stored_as=target.stored_as if own else "float"))
     (out / "snapshots").mkdir(exist_ok=True)
     for step, img in sorted(snaps.items()):
         save_png(out / "snapshots" / f"step_{step:04d}.png", img)

@@ -102,7 +102,8 @@ def load_input(path: str | os.PathLike, nan_policy: str = "drop", normals_k: int
 
     NaN/inf rows are counted and dropped (``nan_policy="drop"``) or refused (``"raise"``);
     normals are estimated (PCA, ``normals_k`` neighbours, consistent orientation) when the file
-    has none or ``recompute_normals``.
+    has none or ``recompute_normals``. A cloud far from the origin comes centred, its float64
+    ``offset`` kept for the output (:func:`dss.pointcloud.load_ply`).
     """
     from dss.pointcloud import PointCloudError, estimate_normals, load_ply
 
@@ -120,7 +121,9 @@ def load_input(path: str | os.PathLike, nan_policy: str = "drop", normals_k: int
     if dropped:
         log.warning("input %s: dropped %d rows with NaN/inf values", path, dropped)
     report = {"path": str(path), "points": len(cloud), "rows_in_file": raw, "nan_rows_dropped": int(dropped),
-              "normals": "from file" if had_normals and not recompute_normals else f"estimated (PCA, k={normals_k})"}
+              "normals": "from file" if had_normals and not recompute_normals else f"estimated (PCA, k={normals_k})",
+              # the input's coordinates are points + offset: the job works centred, the output is written back
+              "offset": None if cloud.offset is None else cloud.offset.tolist()}
     return cloud, report
 
 
@@ -170,13 +173,18 @@ def _explicit_model(cfg: DictConfig) -> bool:
     return "model" in node and node.model not in (None, "auto")
 
 
-def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0):
-    """(clean points (M, 3) float64 or None, mesh (V, F) or None, note)."""
+def load_ground_truth(clean: str | None, mesh: str | None, n: int, seed: int = 0, offset=None):
+    """(clean points (M, 3) float64 or None, mesh (V, F) or None, note), less ``offset`` (the
+    input cloud's, float64 (3,); see :func:`load_input`) so that they share the input's frame."""
     from dss.metrics import load_mesh, load_points, sample_poisson_disk
 
+    shift = np.zeros(3) if offset is None else np.asarray(offset, np.float64).reshape(3)
     m = load_mesh(mesh) if mesh else None
+    if m is not None and offset is not None:
+        m = (m[0] - shift, m[1])
     if clean:
-        return load_points(clean), m, "clean cloud from file"
+        pts = load_points(clean)
+        return (pts if offset is None else pts - shift), m, "clean cloud from file"
     if m is not None:
         return sample_poisson_disk(m, n, seed), m, f"clean cloud: {n} Poisson-disk samples of the mesh (seed {seed})"
     return None, None, "no ground truth"
@@ -515,7 +523,7 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
     if hasattr(generator, "bind"):  # the oracle: the clean cloud in the optimiser's frame
         if clean is None:
             raise ValueError("reference=oracle renders the ground truth: give clean= or mesh=")
-        cp = (torch.as_tensor(np.asarray(clean), dtype=torch.float32) - center) / scale
+        cp = ((torch.as_tensor(np.asarray(clean), dtype=center.dtype) - center) / scale).float()
         m = None
         if mesh is not None:
             v, f = mesh
@@ -632,6 +640,61 @@ def resolve_channel(cfg: DictConfig, generator, budget_note: dict):
     return spec, "config", spec.point_light(), spec.describe_shading()
 
 
+# ------------------------------------------------------------------------------ checks
+#: the noise estimator reads a clean surface as less than this (dss.pipeline.estimate_noise_level):
+#: an input estimated below it holds no noise the job can tell apart from its surface
+NOISE_FLOOR = 0.001
+
+
+def noise_hint(value) -> float | None:
+    """``noise=``: None (estimate it) or a positive fraction of the bbox diagonal; anything else is
+    refused naming the key."""
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise={value!r} is not a number: give the noise std as a fraction of the bbox "
+                         "diagonal (0.003, 0.01), or leave noise unset to estimate it") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise ValueError(f"noise={value}: the noise hint must be a positive fraction of the bbox diagonal "
+                         "(0.003, 0.01)")
+    return v
+
+
+FIGURE_KEYS = ("enabled", "views", "image_size")
+
+
+def check_figures(node) -> None:
+    """Refuse a bad ``figures`` block before any work (the figures are drawn after it)."""
+    node = node or {}
+    unknown = sorted(set(node) - set(FIGURE_KEYS))
+    if unknown:
+        raise ValueError(f"figures: unknown keys {unknown}; known: {list(FIGURE_KEYS)}")
+    enabled = node.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise ValueError(f"figures.enabled={enabled!r}: must be true or false")
+    for key, default, allow_null in (("views", 4, False), ("image_size", None, True)):
+        value = node.get(key, default)
+        if value is None and allow_null:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"figures.{key}={value!r}: must be a positive integer"
+                             + (" (or null: the render size)" if allow_null else ""))
+
+
+def noise_floor_note(path, estimated: float, hint: float | None) -> str | None:
+    """A clear word when the input holds less noise than the job can tell from its surface: the job
+    still runs (and smooths what it sees), but there is nothing to remove. None otherwise."""
+    if hint is not None or estimated >= NOISE_FLOOR:
+        return None
+    note = (f"the estimated noise ({100 * estimated:.2g}% of the bbox diagonal) is below what the job can improve "
+            f"(a clean surface reads below {100 * NOISE_FLOOR:.2g}%): the input looks noise-free, so the output differs "
+            "from it only by the job's smoothing (noise=... sets the level if the estimate is wrong)")
+    log.warning("input %s: %s", path, note)
+    return note
+
+
 # ------------------------------------------------------------------------------ the app
 def _example_defaults(cfg: DictConfig) -> tuple[str, str | None, str | None, bool]:
     """(input, clean, mesh, is_example): with no input, the shipped example and its ground truth."""
@@ -660,9 +723,8 @@ def run(cfg: DictConfig) -> dict:
     # the outputs (claimed: writable, not another run's), the input, the model.
     check_wandb(cfg.get("wandb"))
     dev = resolve_device(cfg.get("device"))
-    hint = cfg.get("noise")
-    if hint is not None and not (float(hint) > 0):
-        raise ValueError(f"noise hint must be a positive fraction of the bbox diagonal (0.003, 0.01), got {hint}")
+    hint = noise_hint(cfg.get("noise"))
+    check_figures(cfg.get("figures"))
     claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
     output = resolve_output(cfg, out, "denoised.ply")
     clock = StageClock()  # where the job's time goes: metrics.json profile_s and the log
@@ -678,7 +740,8 @@ def run(cfg: DictConfig) -> dict:
             cloud, cfg.get("outliers", {}), None if input_report["normals"] == "from file" else int(cfg.normals.k))
     with clock("noise_estimate"):
         estimated = estimate_noise_level(cloud.points)
-    noise = float(hint) if hint is not None else estimated
+    noise = hint if hint is not None else estimated
+    noise_note = noise_floor_note(input_path, estimated, hint)
     if generator is None:
         with clock("reference_setup"):
             generator, model_note = make_reference(cfg, noise)
@@ -692,7 +755,7 @@ def run(cfg: DictConfig) -> dict:
     # settings resolved: the point count they need is known before any optimisation
     optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(cloud), f"input {input_path}")
     with clock("ground_truth"):
-        clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed))
+        clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(cloud_in), int(cfg.seed), cloud.offset)
     if generator.name == "oracle" and clean is None:
         raise ValueError("reference=oracle renders the ground truth: give clean= or mesh=")
     save_config(cfg, out)
@@ -712,7 +775,8 @@ def run(cfg: DictConfig) -> dict:
     with clock("write"):
         nrm = output_normals(pts, nrm_opt, mode, int(cfg.normals.k))
         # never replaces a file that appeared meanwhile (overwrite=false): the result then goes beside it
-        output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
+        # in the input's frame and precision: a cloud centred on load gets its offset back, doubles stay doubles
+        output = save_ply(output, PointCloud(pts, nrm, offset=cloud.offset, stored_as=cloud.stored_as), exclusive=not cfg.get("overwrite", False))
         if removed is not None:
             outlier_report["file"] = str(save_ply(out / "outliers.ply", removed))
 
@@ -760,7 +824,7 @@ def run(cfg: DictConfig) -> dict:
         "output": str(output),
         "ground_truth": {"clean": clean_path, "mesh": mesh_path, "note": gt_note},
         "outliers": outlier_report,
-        "noise": {"hint": None if hint is None else float(hint), "estimated": estimated, "used": noise},
+        "noise": {"hint": hint, "estimated": estimated, "used": noise, "note": noise_note},
         **by_noise,  # cycles, projection_weight, reg_cutoff, reg_dilation: the value used and why
         "budget": budget_note,
         "reference": {**generator.describe(), "selection": model_note},

@@ -13,6 +13,7 @@ directory receives ``config.yaml`` and ``metrics.json`` (parity numbers, metadat
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -24,15 +25,20 @@ from experiments.common import guarded
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run", "main", "model_card"]
+__all__ = ["run", "main", "model_card", "ParityError"]
+
+
+class ParityError(ValueError):
+    """The ONNX file's outputs differ from PyTorch's by more than the tolerance (or are not finite)."""
 
 
 def _real_renders(root: str | Path, noise_level: float | None, n: int) -> np.ndarray:
     """Up to ``n`` noisy validation renders (B, 3, H, W) float32 from a dss-pairs dataset."""
-    from pix2pix.shards import open_shard, read_manifest, select_shards
+    from pix2pix.shards import open_shard, read_manifest, select_shards, verify_shards
 
     manifest = read_manifest(root)
     shards = select_shards(root, manifest, "val", noise_level)
+    verify_shards(shards[:1], root)
     arrays = open_shard(shards[0].path, manifest["image_size"], 3, shards[0].num_pairs)
     x = np.asarray(arrays["noisy"][:n], dtype=np.float32).transpose(0, 3, 1, 2)
     h, w = x.shape[2] // 4 * 4, x.shape[3] // 4 * 4
@@ -122,11 +128,14 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if cfg.get("data_root"):
         x = _real_renders(cfg.data_root, meta.get("dss.noise_level"), int(cfg.parity_real_pairs))
         parity[f"real_{x.shape[0]}x{x.shape[2]}x{x.shape[3]}"] = onnx_parity(gen, path, x)
-    worst = max(parity.values(), default=0.0)
     tol = float(cfg.get("parity_tolerance", 1e-4))
-    if worst > tol:
+    # NaN compares false with everything: a non-finite difference is a failed check, not a pass
+    failed = {k: v for k, v in parity.items() if not v <= tol}
+    worst = max(parity.values(), default=0.0, key=lambda v: v if math.isfinite(v) else math.inf)
+    if failed:
         path.unlink(missing_ok=True)
-        raise RuntimeError(f"ONNX parity {worst:.3g} exceeds {tol:g}: {parity}; {path} removed")
+        raise ParityError(f"ONNX parity {worst:.3g} exceeds {tol:g} ({', '.join(f'{k}: {v:.3g}' for k, v in failed.items())}); "
+                          f"{path} removed")
     card = None
     if cfg.get("model_card", True):
         card = path.with_suffix(path.suffix + ".md")

@@ -25,6 +25,19 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from experiments.apps.denoise import (
+    EXAMPLE_DIR,
+    check_figures,
+    load_ground_truth,
+    load_input,
+    make_reference,
+    optimizer_config,
+    resolve_output,
+    run_refinement,
+    score,
+    short_metrics,
+    write_figures,
+)
 from experiments.common import (
     claim_run_dir,
     guarded,
@@ -37,18 +50,6 @@ from experiments.common import (
     run_dir,
     save_config,
     save_metrics,
-)
-from experiments.apps.denoise import (
-    EXAMPLE_DIR,
-    load_ground_truth,
-    load_input,
-    make_reference,
-    optimizer_config,
-    resolve_output,
-    run_refinement,
-    score,
-    short_metrics,
-    write_figures,
 )
 from experiments.wandb_log import check as check_wandb
 from experiments.wandb_log import log_run
@@ -87,12 +88,17 @@ def run(cfg: DictConfig) -> dict:
         clean_path = clean_path or str(EXAMPLE_DIR / "clean.ply")
         mesh_path = mesh_path or str(EXAMPLE_DIR / "mesh.ply")
     check_wandb(cfg.get("wandb"))
+    check_figures(cfg.get("figures"))  # drawn after the work: refused before it
     resolve_device(cfg.get("device"))
     claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)))
     output = resolve_output(cfg, out, "filtered.ply")
     cloud, input_report = load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
                                      bool(cfg.normals.recompute))
-    noise = float(cfg.get("noise") or 0.0)
+    try:
+        noise = float(cfg.get("noise") or 0.0)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise={cfg.get('noise')!r} is not a number (the std of the noise to add, as a "
+                         "fraction of the bbox diagonal)") from None
     if noise < 0:
         raise ValueError(f"noise must be >= 0 (std as a fraction of the bbox diagonal), got {noise}")
     points, normals = cloud.points, cloud.normals
@@ -107,7 +113,7 @@ def run(cfg: DictConfig) -> dict:
     generator, _ = make_reference(cfg, None)
     spec = load_render_spec(image_size=[int(cfg.image_size)] * 2) if cfg.get("image_size") else load_render_spec()
     shading = _shading(str(cfg.shading), spec)
-    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(points), int(cfg.seed))
+    clean, mesh, gt_note = load_ground_truth(clean_path, mesh_path, len(points), int(cfg.seed), cloud.offset)
     optimizer_config(cfg.optimizer, cfg.views, cfg.seed).check_points(len(points), f"input {input_path}")
     kernel_build = prepare_kernels(resolve_device(cfg.get("device")))
     save_config(cfg, out)
@@ -118,7 +124,8 @@ def run(cfg: DictConfig) -> dict:
     pts, nrm, history, ref, norm, ocfg = run_refinement(cfg, points, normals, generator, spec,
                                                         f"dss-filter ({generator.name})", shading=shading)
     t_opt = time.perf_counter() - t0
-    output = save_ply(output, PointCloud(pts, nrm), exclusive=not cfg.get("overwrite", False))
+    # in the input's frame (a cloud centred on load gets its offset back, as doubles)
+    output = save_ply(output, PointCloud(pts, nrm, offset=cloud.offset, stored_as=cloud.stored_as), exclusive=not cfg.get("overwrite", False))
 
     # How far the geometry moved (input as the reference, paper protocol units).
     moved = evaluate(pts.numpy(), points.numpy(), None, "paper").to_dict()

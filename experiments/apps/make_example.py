@@ -39,29 +39,10 @@ OUT = Path(__file__).resolve().parents[1] / "assets" / "example"
 def write_ply(path: Path, points: np.ndarray, normals: np.ndarray | None = None,
               faces: np.ndarray | None = None) -> Path:
     """Binary little-endian PLY with float32 vertices (half the size of open3d's doubles),
-    optional float32 normals and int32 triangles; written atomically."""
-    from dss.io_utils import atomic_write_bytes
+    optional float32 normals and int32 triangles; written atomically (:func:`dss.ply.write_ply`)."""
+    from dss.ply import write_ply as _write
 
-    pts = np.ascontiguousarray(points, np.float32)
-    cols = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if normals is not None:
-        cols += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-    v = np.empty(len(pts), dtype=cols)
-    v["x"], v["y"], v["z"] = pts.T
-    if normals is not None:
-        n = np.asarray(normals, np.float32)
-        v["nx"], v["ny"], v["nz"] = n.T
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
-    header += [f"property float {c}" for c, _ in cols]
-    body = v.tobytes()
-    if faces is not None:
-        f = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-        f["n"] = 3
-        f["i"] = np.asarray(faces, np.int32)
-        header += [f"element face {len(f)}", "property list uchar int vertex_indices"]
-        body += f.tobytes()
-    header.append("end_header")
-    return atomic_write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + body)
+    return _write(path, points, normals, faces=faces)
 
 
 def make_example(out: str | Path = OUT, force: bool = False) -> dict:

@@ -142,6 +142,9 @@ class OnnxReference(_Generator):
         self.path = path
         self.denoiser = OnnxDenoiser(path, intra_op_num_threads=threads, max_batch=max_batch)
         self.noise_level = self.denoiser.noise_level
+        # the renders it will get (3 channels at the model's render size, else the shared spec's)
+        # fit the graph: refused at load otherwise, in one line
+        self.denoiser.check_render(self.denoiser.render_image_size or load_render_spec().image_size, channels=3)
 
     def render_spec(self, base: RenderSpec | None = None) -> tuple[RenderSpec, str]:
         return spec_from_metadata(self.denoiser.metadata, base)

@@ -8,6 +8,11 @@ Configs: ``conf/train.yaml`` and its groups (model, data, trainer, logger, callb
 experiment, hparams_search). The run directory (``output_dir``) receives ``config.yaml`` (the
 resolved config), ``checkpoints/`` (best and last), ``val_grids/``, logger output,
 ``denoiser.onnx`` (export of the best checkpoint) and ``metrics.json``.
+
+A directory that holds an earlier run's results is refused before any work, unless
+``ckpt_path`` resumes that run (a checkpoint inside it) or ``overwrite=true`` (which removes
+them first). A resume into another directory carries the run's best checkpoint (copied) and
+its score (:class:`pix2pix.checkpoint.BestCheckpoint`), so the export is the run's best.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from experiments.common import guarded
+from experiments.common import claim_run_dir, guarded, release_claims
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +34,41 @@ log = logging.getLogger(__name__)
 # __len__ is exact with any number of workers; Lightning warns about the general case.
 warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined")
 
-__all__ = ["run", "main", "instantiate_callbacks", "instantiate_loggers"]
+__all__ = ["run", "main", "instantiate_all", "ARTEFACTS", "claim_run"]
+
+#: what a run writes into its output directory (an earlier run's are refused, or removed with
+#: overwrite=true: experiments.common.claim_run_dir)
+ARTEFACTS = ("denoiser.onnx", "denoiser.onnx.md", "metrics.json", "config.yaml", "checkpoints/*.ckpt",
+             "val_grids/*.png", "csv/metrics.csv", "csv/hparams.yaml", "tensorboard/events.out.tfevents.*")
+#: what an interrupted run removes (its checkpoints stay: ckpt_path=<run>/checkpoints/last.ckpt resumes)
+UNFINISHED = ("denoiser.onnx", "denoiser.onnx.md", "metrics.json")
+
+
+def claim_run(cfg: DictConfig, out: Path, clear_records: bool = False) -> Path:
+    """Claim the output directory ``out`` (experiments.common.claim_run_dir): an earlier run's
+    results there are refused unless ``overwrite``, except when ``ckpt_path`` is a checkpoint of
+    that very run (a resume continues it in place)."""
+    ckpt = cfg.get("ckpt_path")
+    if ckpt and Path(str(ckpt)).resolve().is_relative_to(Path(out).resolve()):
+        return claim_run_dir(out, ())  # resuming this run: its files stay
+    return claim_run_dir(out, ARTEFACTS, bool(cfg.get("overwrite", False)), clear_records=clear_records)
+
+
+def _instantiate(node, group: str):
+    """``hydra.utils.instantiate(node)``; a constructor's ValueError names the key, with the group
+    (``data.batch_size='abc' is not an integer``)."""
+    import re
+
+    from hydra.errors import InstantiationException
+
+    try:
+        return hydra.utils.instantiate(node)
+    except InstantiationException as e:
+        cause = e.__cause__
+        if isinstance(cause, ValueError):
+            msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
+            raise ValueError(f"{group}.{msg}" if re.match(r"\w+=", msg) else f"{group}: {msg}") from cause
+        raise
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
@@ -44,15 +83,8 @@ def _atomic_text(path: Path, text: str) -> None:
     atomic_write_text(path, text)
 
 
-def instantiate_callbacks(cfg: DictConfig | None) -> list:
-    """Every ``_target_`` entry of the ``callbacks`` group, in order."""
-    if not cfg:
-        return []
-    return [hydra.utils.instantiate(c) for _, c in cfg.items() if isinstance(c, DictConfig) and "_target_" in c]
-
-
-def instantiate_loggers(cfg: DictConfig | None) -> list:
-    """Every ``_target_`` entry of the ``logger`` group, in order."""
+def instantiate_all(cfg: DictConfig | None) -> list:
+    """Every ``_target_`` entry of a group node of named entries (``callbacks``, ``logger``), in order."""
     if not cfg:
         return []
     return [hydra.utils.instantiate(c) for _, c in cfg.items() if isinstance(c, DictConfig) and "_target_" in c]
@@ -80,32 +112,44 @@ def _check_data(node) -> None:
                                 "or point data.root=<dir> at a dss-prep output")
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train (or resume) per ``cfg``; returns (and writes to metrics.json) the results.
+def run(cfg: DictConfig, extra_callbacks: list | tuple = ()) -> dict[str, Any]:
+    """Train (or resume) per ``cfg``, with the ``callbacks`` group's Lightning callbacks and
+    ``extra_callbacks``; returns (and writes to metrics.json) the results.
 
     Returns a dict with ``metrics`` (last logged values), ``best_val`` (validation of the best
     checkpoint: output vs clean and the noisy baseline), ``best_ckpt``, ``last_ckpt``,
     ``global_step``, ``epoch``, ``fit_seconds``, ``train_images_per_s``, ``onnx`` and
     ``objective`` (``cfg.optimized_metric`` of the best checkpoint, for sweepers).
     """
+    _check_data(cfg.get("data"))
+    out_dir = Path(cfg.output_dir)
+    ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path is not None and not Path(ckpt_path).is_file():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
+    claim_run(cfg, out_dir)
+    try:
+        return _run(cfg, out_dir, ckpt_path, extra_callbacks)
+    finally:
+        release_claims()
+
+
+def _run(cfg: DictConfig, out_dir: Path, ckpt_path, extra_callbacks=()) -> dict[str, Any]:
     import lightning as L
     import torch
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 
-    _check_data(cfg.get("data"))
-    out_dir = Path(cfg.output_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    _atomic_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg.torch_threads))
     if cfg.get("seed") is not None:
         L.seed_everything(int(cfg.seed), workers=True)
 
     log.info("data: %s", cfg.data.get("_target_"))
-    datamodule = hydra.utils.instantiate(cfg.data)
-    model = hydra.utils.instantiate(cfg.model)
-    callbacks = instantiate_callbacks(cfg.get("callbacks"))
-    loggers = instantiate_loggers(cfg.get("logger"))
+    datamodule = _instantiate(cfg.data, "data")
+    model = _instantiate(cfg.model, "model")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _atomic_text(out_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    callbacks = instantiate_all(cfg.get("callbacks")) + list(extra_callbacks)
+    loggers = instantiate_all(cfg.get("logger"))
     if not loggers:
         dropped = [c for c in callbacks if isinstance(c, LearningRateMonitor)]
         if dropped:
@@ -116,9 +160,6 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for lg in loggers:
         lg.log_hyperparams(hparams)
 
-    ckpt_path = cfg.get("ckpt_path")
-    if ckpt_path is not None and not Path(ckpt_path).is_file():
-        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
     result: dict[str, Any] = {"task_name": cfg.get("task_name"), "model": cfg.model.get("name"),
                               "noise_level": None, "resumed_from": ckpt_path}
     try:

@@ -93,8 +93,8 @@ def _with_vis_order(order: str, fn):
 
 def bench_kernels(mod, points, normals, cams, sigma, settings, merge: float, warmup: int, repeats: int) -> dict:
     """The CUDA kernels alone, on inputs prepared outside the timed region."""
+    from dss.reference import tangent_planes
     from dss.shading import SunLights
-    from dss.splats import tangent_planes
 
     H, W = cams.image_size
     bg = torch.zeros(3, device=points.device)

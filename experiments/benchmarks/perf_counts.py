@@ -34,9 +34,9 @@ import time
 import numpy as np
 import torch
 
-from dss.rasterizer.reference import bbox
+from dss.reference import bbox, project_splats
 from dss.render import RenderSettings
-from dss.splats import auto_sigma, project_splats
+from dss.splats import auto_sigma
 from experiments import outputs
 from experiments.benchmarks.bench_render import benchmark_cloud, cameras_for, machine_info
 

@@ -79,7 +79,7 @@ def study_reference(base: list[str], reference: str, out: Path) -> dict:
     dn.resolve_all_by_noise(cfg, noise, len(cloud))
     budget = dn.resolve_budget(cfg, len(cloud), None)
     spec, _, shading, shading_name = dn.resolve_channel(cfg, generator, budget)
-    clean, mesh, _ = dn.load_ground_truth(clean_path, mesh_path, len(cloud), int(cfg.seed))
+    clean, mesh, _ = dn.load_ground_truth(clean_path, mesh_path, len(cloud), int(cfg.seed), cloud.offset)
     if mesh is None or clean is None:
         raise SystemExit("image_study needs ground truth: --clean and --mesh (the shipped example has both)")
     settings = spec.render_settings()

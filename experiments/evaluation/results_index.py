@@ -15,8 +15,13 @@ it reads:
 - any other ``*.json`` that records its ``command``: listed with that command (and its PNG).
 
     dss-results                     # writes the index to outputs/dss-results/<timestamp>/README.md
-    dss-results --publish           # rewrites results/README.md (tracked)
-    dss-results --check             # exit 1 when results/README.md is not what it would write
+    dss-results --publish           # rewrites results/README.md and the docs' generated blocks (tracked)
+    dss-results --check             # exit 1 when either is not what it would write
+
+The docs' generated blocks: tables in README.md and docs/*.md between ``<!-- generated: ... -->``
+and ``<!-- end generated -->`` markers, written from the result file the marker names
+(:mod:`experiments.evaluation.doc_blocks`; the docs are those of the repository holding the
+results folder).
 """
 from __future__ import annotations
 
@@ -318,21 +323,35 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.out and a.publish:
         ap.error("give --out or --publish, not both")
+    from experiments.evaluation import doc_blocks
+
     published = a.results / "README.md"
     text = build(a.results)
+    docs_root = a.results.resolve().parent  # the repository the results folder belongs to
+    try:
+        stale = doc_blocks.update(docs_root, write=a.publish)
+    except ValueError as e:
+        print(f"dss-results: error: {e}", file=sys.stderr)
+        return 2
+    where = [f"{b.path.relative_to(docs_root)}:{b.line} ({b.generator} from {b.source})" for b in stale]
     if a.check:
         out = published
         current = out.read_text() if out.is_file() else ""
         if current != text:
             print(f"{out} is out of date: run dss-results --publish", file=sys.stderr)
+        for w in where:
+            print(f"generated block {w} is out of date: run dss-results --publish", file=sys.stderr)
+        if current != text or where:
             return 1
-        print(f"{out} is up to date")
+        print(f"{out} and the docs' generated blocks are up to date")
         return 0
     from experiments import outputs
 
     out = published if a.publish else a.out or outputs.fresh_folder("dss-results") / "README.md"
     atomic_write_text(out, text)
     print(f"wrote {out}")
+    for w in where:
+        print(f"{'rewrote' if a.publish else 'out of date (dss-results --publish rewrites it)'}: generated block {w}")
     return 0
 
 

@@ -1,4 +1,7 @@
-"""Readable pure-torch rasteriser: the test oracle for the C++ and CUDA kernels.
+"""Stage 2 of rendering in torch: the twin of the kernels' ``rasterize_forward``.
+
+:func:`rasterize` gives the per-pixel top-K cache, :func:`blend_cached` the image and mask that
+``rasterize_forward`` returns with attributes (Eq. sumI over the cache's weights).
 
 For every valid splat we enumerate the pixels of its cutoff bounding box, keep those with
 1/2 q <= C (q = d^T Sigma^-1 d), and per pixel keep the K entries with the smallest
@@ -12,10 +15,10 @@ import math
 
 import torch
 
+from ..fragments import Fragments
 from ..splats import Splats
-from .fragments import Fragments
 
-__all__ = ["rasterize", "blend", "bbox"]
+__all__ = ["rasterize", "blend_cached", "bbox", "splat_weight"]
 
 
 def bbox(packed: torch.Tensor, H: int, W: int):
@@ -101,8 +104,9 @@ def rasterize(splats: Splats, image_size: tuple[int, int], K: int = 5, cutoff: f
     return Fragments(idx_out.view(shape), depth_out.view(shape), rho_out.view(shape), float(merge_threshold))
 
 
-def blend(frags: Fragments, attributes: torch.Tensor, background) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised weighted sum (Eq. sumI) over the visible entries of the cache.
+def blend_cached(frags: Fragments, attributes: torch.Tensor, background) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised weighted sum (Eq. sumI) over the visible entries of the cache, with the cache's
+    weights (no gradient to the splats: :func:`dss.reference.blend` recomputes them).
 
     Args:
         attributes: (V, N, C) per-view point attributes w_k.

@@ -1,6 +1,7 @@
 """The paper's visibility gradient for point positions (Eqs. gradcase and filteredG), in torch.
 
-This is the readable reference; ``dss_cpu.visibility_backward`` implements the same rules.
+The twin of the kernels' ``visibility_backward`` (dss/csrc/visibility_backward_*), the same rules
+written out readably.
 
 For every rendered point k (valid splat in view v) and every pixel x of a (2w+1)^2 window
 around its centre (optionally on a stride), with the pixel's cached top-K list sorted by depth,
@@ -24,7 +25,7 @@ Each move ``dp`` contributes ``(dL/dI . dI) dp / (|dp|^2 + eps)`` to dL/dp_k, an
 when ``dL/dI . dI >= 0`` (the change could not reduce the loss, Eq. filteredG).
 
 Occlusion test (cases (a)/(b)): z_k above is the depth of k's tangent plane at pixel x (the depth
-its splat would have there, ``planes`` from :func:`dss.splats.tangent_planes`, clamped to a slope
+its splat would have there, ``planes`` from :func:`dss.reference.tangent_planes`, clamped to a slope
 of ``MAX_SLOPE``), not its centre depth; (a) moves toward q_x at that depth, (b) comes forward by
 ``d0 - z_k``. The paper compares centre depths. On a curved surface the centre depth of a point a
 few pixels away differs from the surface depth at x by slope x distance, more than T, so a point
@@ -46,10 +47,10 @@ from __future__ import annotations
 
 import torch
 
-from .cameras import Cameras
-from .rasterizer.fragments import Fragments
+from ..cameras import Cameras
+from ..fragments import Fragments
 
-__all__ = ["visibility_grad_reference"]
+__all__ = ["visibility_backward", "MAX_SLOPE"]
 
 # Grazing tangent planes are clamped to this slope: |z_plane - z| <= MAX_SLOPE * (pixel distance) * z / f.
 MAX_SLOPE = 3.0
@@ -63,16 +64,16 @@ def _plane_depth(pl, px, py, z, u, v, f):
     return torch.minimum(torch.maximum(zp, z - dmax), z + dmax)
 
 
-def visibility_grad_reference(packed: torch.Tensor, attrs: torch.Tensor, frags: Fragments, images: torch.Tensor,
-                              grad: torch.Tensor, cameras: Cameras, background: torch.Tensor, window: int = 4,
-                              stride: int = 1, cutoff: float = 1.0, eps: float = 1e-5, mode: str = "dss",
-                              planes: torch.Tensor | None = None) -> torch.Tensor:
+def visibility_backward(packed: torch.Tensor, attrs: torch.Tensor, frags: Fragments, images: torch.Tensor,
+                        grad: torch.Tensor, cameras: Cameras, background: torch.Tensor, window: int = 4,
+                        stride: int = 1, cutoff: float = 1.0, eps: float = 1e-5, mode: str = "dss",
+                        planes: torch.Tensor | None = None) -> torch.Tensor:
     """dL/dp (N, 3) in world coordinates from the visibility term alone.
 
     Args:
         packed: (V, N, 10) splats; attrs: (V, N, C); frags: the forward cache; images: (V, H, W, C)
         rendered; grad: dL/dimages (V, H, W, C); background: (C,).
-        planes: (V, N, 3) inverse-depth planes of :func:`dss.splats.tangent_planes`; None: the
+        planes: (V, N, 3) inverse-depth planes of :func:`dss.reference.tangent_planes`; None: the
             centre depth at every pixel.
     """
     V, N, _ = packed.shape
