@@ -699,7 +699,10 @@ class MultiViewOptimizer:
             step = self._run_cycles(progress, gen, t0)
         if final_projection:
             with torch.no_grad():
-                self.points.copy_(self.project_outliers(self.points.detach()))
+                p = self.project_outliers(self.points.detach())
+                if self.cfg.max_displacement > 0:
+                    p = bound_displacement(p, self._start, self.cfg.max_displacement)
+                self.points.copy_(p)
             self.refit_final_normals()
         self.history["wall_time"] = time.perf_counter() - t0
         self.history["steps"] = step

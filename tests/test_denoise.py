@@ -451,37 +451,60 @@ def test_output_normals_pca_takes_signs_from_the_optimised_ones():
 
 
 def test_auto_cycles_follow_the_noise_level():
+    """cycles=auto: the table interpolated in log noise (rounded), its end values beyond it; the
+    point rate takes the rounding, so cycles x rate is continuous."""
     from omegaconf import OmegaConf
 
-    from experiments.apps.denoise import resolve_by_noise
+    from experiments.apps.denoise import resolve_all_by_noise, resolve_by_noise
 
     def resolve_cycles(c, noise):
         return resolve_by_noise(c, noise, "cycles", int)
 
     cfg = OmegaConf.create({"optimizer": {"cycles": "auto"}, "cycles_by_noise": {0.003: 2, 0.01: 16}})
-    assert resolve_cycles(cfg, 0.0042)["used"] == 2 and cfg.optimizer.cycles == 2
+    assert resolve_cycles(cfg, 0.002)["used"] == 2 and cfg.optimizer.cycles == 2
     cfg.optimizer.cycles = "auto"
-    note = resolve_cycles(cfg, 0.0075)
-    assert note["used"] == 16 and note["nearest_level"] == 0.01 and cfg.optimizer.cycles == 16
+    note = resolve_cycles(cfg, 0.02)
+    assert note["used"] == 16 and cfg.optimizer.cycles == 16
+    cfg.optimizer.cycles = "auto"
+    mid = math.sqrt(0.003 * 0.01)  # half way in log noise: the geometric mean of 2 and 16
+    note = resolve_cycles(cfg, mid)
+    assert note["exact"] == pytest.approx(math.sqrt(2 * 16)) and note["used"] == 6
     fixed = OmegaConf.create({"optimizer": {"cycles": 5}})
     assert resolve_cycles(fixed, 0.003) == {"setting": 5, "used": 5}
     with pytest.raises(ValueError, match="cycles_by_noise"):
         resolve_cycles(OmegaConf.create({"optimizer": {"cycles": "auto"}}), 0.01)
+    # no jump between two tuned levels: cycles x rate moves continuously
+    products = []
+    for noise in np.geomspace(0.003, 0.01, 41):
+        c = OmegaConf.create({"optimizer": {k: "auto" for k in ("cycles", "lr_points", "projection_weight",
+                                                                 "reg_cutoff", "final_projection_k")},
+                              "cycles_by_noise": {0.003: 2, 0.01: 16}, "lr_points_by_noise": {0.003: 5, 0.01: 15},
+                              "projection_weight_by_noise": {0.003: 0.1}, "reg_cutoff_by_noise": {0.003: 1},
+                              "final_projection_k_by_noise": {0.003: 32}})
+        resolve_all_by_noise(c, float(noise))
+        products.append(c.optimizer.cycles * c.optimizer.lr_points)
+    steps = np.diff(np.log(products))
+    assert (steps > 0).all() and steps.max() < 2.5 * steps.min()
 
 
 def test_auto_projection_weight_follows_the_noise_level():
     from omegaconf import OmegaConf
 
-    from experiments.apps.denoise import resolve_by_noise
+    from experiments.apps.denoise import interpolate_by_noise, resolve_by_noise
 
     cfg = OmegaConf.create({"optimizer": {"projection_weight": "auto"},
                             "projection_weight_by_noise": {0.01: 0.1, 0.02: 0.5}})
     note = resolve_by_noise(cfg, 0.025, "projection_weight")
-    assert note["used"] == 0.5 and note["nearest_level"] == 0.02 and cfg.optimizer.projection_weight == 0.5
+    assert note["used"] == 0.5 and cfg.optimizer.projection_weight == 0.5
+    cfg.optimizer.projection_weight = "auto"
+    assert resolve_by_noise(cfg, 0.014, "projection_weight")["used"] == pytest.approx(
+        0.1 * 5 ** (math.log(1.4) / math.log(2)))
     fixed = OmegaConf.create({"optimizer": {"projection_weight": 0.3}})
     assert resolve_by_noise(fixed, 0.02, "projection_weight") == {"setting": 0.3, "used": 0.3}
     with pytest.raises(ValueError, match="projection_weight_by_noise"):
         resolve_by_noise(OmegaConf.create({"optimizer": {"projection_weight": "auto"}}), 0.01, "projection_weight")
+    # a table with a zero interpolates linearly
+    assert interpolate_by_noise({0.01: 0.0, 0.04: 1.0}, 0.02) == pytest.approx(0.5)
 
 
 def test_shipped_config_resolves_every_auto_setting():

@@ -128,6 +128,32 @@ def test_projection_flattens_a_noisy_plane_during_normal_steps():
 
 
 
+def test_max_displacement_bounds_every_points_move():
+    """OptimizerConfig.max_displacement: no point ends farther than the bound from its start (the
+    final projection included), and the projection still flattens the plane within it."""
+    from dss.optimize import bound_displacement
+
+    pts, nrm, st, sampler, ref = _noisy_plane(0)
+    pts = pts.clone()
+    pts[0, 2] = 0.2  # a tail point the final projection would move 0.2
+    moves = {}
+    for bound in (0.0, 0.01):
+        cfg = OptimizerConfig(cycles=1, normal_steps=10, point_steps=0, lr_normals=0.0, momentum=0.0, views=1,
+                              projection_weight=300.0, repulsion_weight=0.0, regularizer_weighting="absolute",
+                              lr_points=2.0, lr_scale=1.0, clip_point_grad=None, final_projection_k=32,
+                              max_displacement=bound)
+        out = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32).run().points
+        moves[bound] = (out - pts).norm(dim=1)
+        if bound:
+            assert float(moves[bound].max()) <= bound * (1 + 1e-5)
+            assert out[1:, 2].abs().mean() < 0.8 * pts[1:, 2].abs().mean()
+    assert float(moves[0.0].max()) > 0.1  # unbounded, the tail point goes all the way
+    p = torch.tensor([[0.0, 0.0, 3.0], [0.1, 0.0, 0.0]])
+    assert torch.allclose(bound_displacement(p, torch.zeros(2, 3), 1.0), torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="max_displacement"):
+        OptimizerConfig(max_displacement=-1.0)
+
+
 def test_final_projection_pulls_in_a_tail_point_after_the_last_cycle():
     """OptimizerConfig.final_projection_k: with no regulariser the outlier stays where it is;
     the final outlier projection puts it back on the plane and leaves the inliers untouched."""
