@@ -95,6 +95,11 @@ class FusionConfig:
     image_normals: bool = True
     fill_k: int = 16
     fill_min_weight: float = 2.0
+    # how much of its move each point makes (its consistency times this), and of the fill step:
+    # 1 the full fusion, 0 none (the stage is skipped); weight_by_noise ({noise level: weight},
+    # interpolated in log noise, dss.schedule) sets it from the cloud's noise when given
+    weight: float = 1.0
+    weight_by_noise: dict | None = None
 
     def __post_init__(self):
         if self.fill_k < 0 or self.fill_min_weight <= 0:
@@ -106,10 +111,22 @@ class FusionConfig:
         for name in ("tau", "tau_min", "consistency_px", "consistency_noise"):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"fusion.{name} must be > 0, got {getattr(self, name)}")
+        table = self.weight_by_noise or {}
+        if not 0 <= float(self.weight) <= 1 or any(not (float(k) > 0 and 0 <= float(v) <= 1) for k, v in table.items()):
+            raise ValueError(f"fusion.weight and the weights of weight_by_noise must be in [0, 1] (noise levels > 0), "
+                             f"got {self.weight}, {self.weight_by_noise}")
         if not 0 < self.max_angle_deg <= 90:
             raise ValueError(f"fusion.max_angle_deg must be in (0, 90], got {self.max_angle_deg}")
         if not 0 <= self.min_cos < 1:
             raise ValueError(f"fusion.min_cos must be in [0, 1), got {self.min_cos}")
+
+    def weight_at(self, noise: float) -> float:
+        """The fusion's weight for a cloud of this noise level (``weight_by_noise`` or ``weight``)."""
+        if self.weight_by_noise:
+            from .schedule import interpolate_by_noise
+
+            return interpolate_by_noise(self.weight_by_noise, float(noise))
+        return float(self.weight)
 
     def depth_window(self, noise: float) -> float:
         """``tau`` in bounding-box diagonals for a noise level (std, same units)."""
@@ -285,6 +302,7 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
 
     cfg = config or FusionConfig()
     tau = cfg.depth_window(noise)
+    weight = cfg.weight_at(noise)
     p = points.detach().clone().float()
     signs = normals.detach().float()
     result_normals = None
@@ -305,12 +323,13 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
                                      cfg.min_cos)
             sums.add(obs, cfg.consistency_px, cfg.consistency_noise * float(noise))
         est = sums.estimate(cfg.min_views)
-        move = (est["consistency"] * est["offset"]).float()
+        move = (weight * est["consistency"] * est["offset"]).float()
         p = p + move[:, None] * n
         filled = torch.zeros(len(p), dtype=torch.bool, device=p.device)
         if cfg.fill_k > 0:
             before = p
             p, filled = fill_from_trusted(p, n, est["consistency"].float(), cfg.fill_k, cfg.fill_min_weight)
+            p = before + weight * (p - before)
             move = move + ((p - before) * n).sum(1)
         signs = n
         result_normals = n

@@ -75,6 +75,7 @@ from .regularizers import (
     RepulsionLoss,
     find_neighbors,
     project_to_neighbour_planes,
+    pull_rim_strays,
     with_new_differences,
 )
 from .render import RenderOutput, RenderSettings, render
@@ -187,6 +188,13 @@ class OptimizerConfig:
     # moved much farther than the noise is being moved by the smoothing itself (shrinkage of
     # tips, folds filled in). 0: no bound (the paper).
     max_displacement: float = 0.0
+    # > 0: after the final projection, points beyond the rim of their rim_k nearest neighbours'
+    # patch move back onto it (dss.regularizers.pull_rim_strays: the strays a plane projection
+    # leaves past thin and sharply curved parts). 0: off (the paper).
+    rim_k: int = 0
+    rim_ratio: float = 1.3
+    rim_target: float = 1.0
+    rim_iterations: int = 2
     views: int = 12
     fov_deg: float = 30.0
     view_jitter: float = 0.1
@@ -264,6 +272,9 @@ class OptimizerConfig:
             raise ValueError("final_projection_k, _threshold and _local_ratio must be >= 0, got "
                              f"{self.final_projection_k}, {self.final_projection_threshold}, "
                              f"{self.final_projection_local_ratio}")
+        if self.rim_k < 0 or not (self.rim_ratio > 0 and self.rim_target > 0) or self.rim_iterations < 1:
+            raise ValueError(f"rim_k must be >= 0, rim_ratio and rim_target > 0, rim_iterations >= 1, got "
+                             f"{self.rim_k}, {self.rim_ratio}, {self.rim_target}, {self.rim_iterations}")
         if self.max_displacement < 0:
             raise ValueError(f"max_displacement must be >= 0, got {self.max_displacement}")
         if self.blowup_extent < 0 or self.blowup_loss < 0 or self.max_lr_halvings < 0:
@@ -789,16 +800,21 @@ class MultiViewOptimizer:
 
     def project_outliers(self, points: torch.Tensor) -> torch.Tensor:
         """The configured final projection (``final_projection_k`` > 0) of ``points`` (N, 3):
-        outliers onto their inliers' planes (:func:`dss.regularizers.project_to_neighbour_planes`);
+        outliers onto their inliers' planes (:func:`dss.regularizers.project_to_neighbour_planes`),
+        then the rim strays back onto their patches (``rim_k`` > 0, :func:`dss.regularizers.pull_rim_strays`);
         ``points`` unchanged when it is off."""
         c = self.cfg
-        if c.final_projection_k <= 0:
-            return points
         with torch.no_grad():
-            return project_to_neighbour_planes(points, c.final_projection_k, c.reg_dilation,
-                                               threshold=c.final_projection_threshold,
-                                               local_ratio=c.final_projection_local_ratio,
-                                               iterations=c.final_projection_iterations)
+            if c.final_projection_k > 0:
+                points = project_to_neighbour_planes(points, c.final_projection_k, c.reg_dilation,
+                                                     threshold=c.final_projection_threshold,
+                                                     local_ratio=c.final_projection_local_ratio,
+                                                     iterations=c.final_projection_iterations)
+            if c.rim_k > 0:
+                points, moved = pull_rim_strays(points, c.rim_k, c.reg_dilation, ratio=c.rim_ratio,
+                                                target=c.rim_target, iterations=c.rim_iterations)
+                self.history.setdefault("rim_moved", []).append(moved)
+            return points
 
     def _error_aware(self, cams: Cameras, gen: torch.Generator) -> Cameras:
         with torch.no_grad():

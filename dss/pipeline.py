@@ -207,6 +207,10 @@ def refine_with_reference(
     clock = StageClock()  # the stages after the cycles (history["profile_s"])
     with clock("outlier_projection"):
         result.points = opt.project_outliers(result.points)
+    if fusion is not None and fusion.weight_at(float(noise)) <= 0:
+        log.info("plane fusion skipped: its weight at noise %.3g is 0", float(noise))
+        result.history["fusion_skipped"] = {"noise": float(noise), "weight": 0.0}
+        fusion = None
     if fusion is not None:
         # after the outlier projection: the outliers it moved are then within the fusion's
         # depth window, and the fusion has the last word on every point it can see
@@ -232,7 +236,8 @@ def refine_with_reference(
         result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
                                     "consistency_mean": float(fused.consistency.mean()),
                                     "image_normals": float(fused.image_normal_mask.float().mean()),
-                                    "final_projection_moved": int(moved.sum())}
+                                    "final_projection_moved": int(moved.sum()),
+                                    "weight": fusion.weight_at(float(noise))}
     if config.max_displacement > 0:  # the optimiser's bound, over the stages after it too
         from .optimize import bound_displacement
 

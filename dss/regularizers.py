@@ -308,6 +308,55 @@ def _fit_planes(neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return centroid, evecs[..., 0]
 
 
+def pull_rim_strays(points: torch.Tensor, k: int = 16, dilation: int = 1, *, ratio: float = 1.3,
+                    target: float = 1.0, iterations: int = 2) -> tuple[torch.Tensor, int]:
+    """Move points that lie beyond the rim of their own neighbourhood back to it. (N, 3) ->
+    ((N, 3), number of points moved in the last iteration).
+
+    A plane projection leaves a point on its neighbours' plane but not *within* their patch: at
+    a thin or sharply curved part (an ear, a horn, a fingertip) noise pushes points off the tip,
+    and the projection puts them on the plane of the tip, past its end, where no surface is.
+    Measured on dss-denoise's outputs of real meshes at 1% noise, the points farthest from the
+    clean surface sit within 1-2e-3 of their 16 neighbours' plane but 15-25e-3 from their
+    centroid along it, more than the neighbourhood's own spread. For each point: the unweighted
+    PCA of its ``k`` (x ``dilation``) nearest other points gives a centroid, a normal and the
+    in-plane spread ``s`` (std along the main axis); a point whose in-plane offset from the
+    centroid exceeds ``ratio * s`` moves along the plane to ``target * s`` from it (its offset
+    along the normal is kept). Inside a sampled surface the offset is a small fraction of ``s``;
+    on a true boundary of an open surface (a half disk) it is about 0.85 s, so ``ratio`` above
+    1 leaves boundaries alone. ``iterations`` repeats with fresh neighbourhoods.
+    """
+    if points.dim() != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
+    if points.shape[0] <= k * dilation:
+        raise ValueError(f"{points.shape[0]} points are too few for {k} x {dilation} neighbours")
+    if not (ratio > 0 and target > 0) or int(iterations) != iterations or iterations < 1:
+        raise ValueError(f"ratio and target must be > 0 and iterations a positive integer, got {ratio}, {target}, "
+                         f"{iterations}")
+    moved = 0
+    with torch.no_grad():
+        p = points.detach().double().clone()
+        for _ in range(int(iterations)):
+            idx = find_neighbors(p, k, dilation=dilation).idx
+            nb = gather_neighbors(p, idx)
+            centroid = nb.mean(1)
+            centred = nb - centroid.unsqueeze(1)
+            evals, evecs = batched_eigh(torch.einsum("nki,nkj->nij", centred, centred) / nb.shape[1])
+            normal = evecs[..., 0]
+            spread = evals[..., 2].clamp_min(0).sqrt()
+            d = p - centroid
+            along = (d * normal).sum(-1, keepdim=True) * normal
+            tangential = d - along
+            length = tangential.norm(dim=-1)
+            far = length > ratio * spread
+            moved = int(far.sum())
+            if moved == 0:
+                break
+            scale = torch.where(far, target * spread / length.clamp_min(1e-30), torch.ones_like(length))
+            p = centroid + along + tangential * scale.unsqueeze(-1)
+        return p.to(points.dtype), moved
+
+
 def project_to_neighbour_planes(
     points: torch.Tensor,
     k: int = 32,
