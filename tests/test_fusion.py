@@ -112,6 +112,32 @@ def test_observations_and_fusion_snap_noisy_points_onto_the_reference_surface():
     assert res.passes[0]["observed"] > 0.8
 
 
+def test_fusion_weight_scales_the_move_and_follows_the_noise_level():
+    """FusionConfig.weight: a half weight moves each point about half as far in one pass;
+    weight_by_noise interpolates in log noise; bad weights are refused."""
+    clean, n = _tilted_plane(50)
+    g = torch.Generator().manual_seed(0)
+    noise = 0.01
+    offsets = noise * torch.randn(len(clean), generator=g)
+    noisy = clean + offsets[:, None] * n
+    ref = _plane_reference(clean, n)
+    moves = {}
+    for w in (1.0, 0.5):
+        res = fuse_planes(noisy, n, ref, lambda: _cams(4), FusionConfig(passes=1, batches=2, views=4, normal_k=16,
+                                                                         fill_k=0, weight=w), noise=noise)
+        moves[w] = (res.points - noisy).norm(dim=1)
+    big = moves[1.0] > 0.5 * noise
+    ratio = (moves[0.5][big] / moves[1.0][big]).median()
+    assert 0.45 < float(ratio) < 0.55, ratio
+    cfg = FusionConfig(weight_by_noise={0.0025: 0.0, 0.01: 1.0})
+    assert cfg.weight_at(0.001) == 0.0 and cfg.weight_at(0.02) == 1.0
+    assert cfg.weight_at(0.005) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="weight"):
+        FusionConfig(weight=1.5)
+    with pytest.raises(ValueError, match="weight"):
+        FusionConfig(weight_by_noise={0.01: -0.1})
+
+
 def test_fusion_moves_nothing_where_the_views_disagree():
     """References that each show another surface (a different offset per view) are not trusted."""
     clean, n = _tilted_plane(50)

@@ -451,3 +451,21 @@ def test_batched_eigh_replaces_a_pool_made_by_another_process():
         assert torch.equal(got[1], torch.linalg.eigh(cov)[1])
     finally:
         torch.set_num_threads(before)
+
+
+def test_rim_strays_move_back_onto_their_patch_and_boundaries_stay():
+    """pull_rim_strays: a point on the plane of a patch but beyond its end moves back within it;
+    the points inside the patch and on its straight boundary (an open surface's edge) stay."""
+    from dss.regularizers import pull_rim_strays
+
+    g = torch.Generator().manual_seed(0)
+    xy = torch.rand(3000, 2, generator=g)  # a unit square patch, an open surface
+    pts = torch.cat([xy, torch.zeros(3000, 1)], 1)
+    stray = torch.tensor([[1.12, 0.5, 0.0]])  # on the plane, past the edge x = 1
+    out, moved = pull_rim_strays(torch.cat([pts, stray]), k=16, iterations=1)
+    assert float(out[-1, 0]) < 1.06 and abs(float(out[-1, 2])) < 1e-9
+    inside = (out[:-1] - pts).norm(dim=1)
+    assert float((inside > 1e-6).float().mean()) < 0.02  # the edge of the square is a boundary
+    assert 1 <= moved < 0.02 * len(pts)
+    with pytest.raises(ValueError, match="ratio"):
+        pull_rim_strays(pts, ratio=0.0)
