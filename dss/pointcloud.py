@@ -167,6 +167,8 @@ def _frame(path: Path, points: np.ndarray, coordinates: str, centre) -> np.ndarr
         cause = (f"; float32 coordinates there are {step:.3g} apart, so a cloud smaller than that collapses onto "
                  "one position: store the coordinates as double" if step >= 1e-3 else "")
         raise PointCloudError(f"{path}: all {len(q)} points are identical ({where}): a zero-size bounding box{cause}")
+    if len(q) == 1 or extent == 0:
+        return None  # a single point (an outliers.ply of one) has no size to compare with
     if step > 0.01 * extent:
         raise PointCloudError(
             f"{path}: the coordinates are float32 values up to {reach:.3g}, which are {step:.3g} apart there: "

@@ -182,7 +182,7 @@ def _run_case(cfg: DictConfig, out: Path, case: dict, points: int, noise: float,
         path = rdir / f"{_safe(label)}.json"
         limit = float(cfg.time_limit_s)
         old = None if overwrite else _read_json(path)
-        if _reusable(old, req, limit):
+        if _reusable(old, req, limit) and old.get("status") != "crash":  # a crash is retried
             records.append({**old, **info, "method": label})
             bar.update(1)
             continue
