@@ -121,7 +121,7 @@ def test_estimate_noise_level(family, seed):
 
 
 def test_select_model_by_noise(tmp_path, monkeypatch):
-    import experiments.apps.reference_generators as rg
+    import experiments.denoising.reference_generators as rg
 
     monkeypatch.setattr(rg, "ASSETS_DIR", tmp_path)
     with pytest.raises(rg.ModelNotFoundError, match=r"denoiser_noise_1pct\.onnx.*does not exist.*reference=l0"):
@@ -153,7 +153,7 @@ def test_pipeline_improves_chamfer(case):
     derivative is sign(d) / s however small d is: full-strength gradients from rounding noise.
     Both renders now use the same projection, so the identity reference gives exactly zero image
     gradient at the start of each cycle."""
-    from experiments.apps.reference_generators import L0Reference, SpecViewSampler
+    from experiments.denoising.reference_generators import L0Reference, SpecViewSampler
 
     spec = load_render_spec(image_size=[64, 64])
     settings, light = spec.render_settings(), spec.point_light()
@@ -217,7 +217,7 @@ def test_reference_renderer_keeps_background_and_checks_output(case):
 
 
 def test_onnx_reference_masks_and_batches(case, tiny_onnx):
-    from experiments.apps.reference_generators import OnnxReference
+    from experiments.denoising.reference_generators import OnnxReference
 
     gen = OnnxReference(tiny_onnx, threads=1, max_batch=2)
     spec, source = gen.render_spec()
@@ -314,7 +314,7 @@ def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
 
 
 def test_denoise_app_picks_shipped_model_by_hint(case, tmp_path, tiny_onnx, monkeypatch):
-    import experiments.apps.reference_generators as rg
+    import experiments.denoising.reference_generators as rg
     from experiments.apps.denoise import run
 
     assets = tmp_path / "assets"

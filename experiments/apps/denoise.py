@@ -440,7 +440,7 @@ def make_reference(cfg: DictConfig, noise: float | None):
     model for ``noise``. Returns (generator, model selection note)."""
     from hydra.utils import instantiate
 
-    from experiments.apps.reference_generators import select_model
+    from experiments.denoising.reference_generators import select_model
 
     node = cfg.reference
     note = None
@@ -512,7 +512,7 @@ def run_refinement(cfg: DictConfig, points: torch.Tensor, normals: torch.Tensor,
     (centre, scale, normalised input points), optimiser config)."""
     from dss.pipeline import refine_with_reference
     from dss.pointcloud import normalize_unit_diagonal
-    from experiments.apps.reference_generators import SpecViewSampler, oracle_normals
+    from experiments.denoising.reference_generators import SpecViewSampler, oracle_normals
 
     pn, center, scale = normalize_unit_diagonal(points)
     dev = resolve_device(cfg.get("device"))

@@ -519,7 +519,7 @@ def shipped_model_for(overrides: list[str], noise: float) -> Path | None:
     given = [o for o in overrides if o.startswith("reference.model=")]
     if given and given[-1].split("=", 1)[1] not in ("auto", "null"):
         return None
-    from experiments.apps.reference_generators import select_model
+    from experiments.denoising.reference_generators import select_model
 
     return Path(select_model(noise)[0])
 
