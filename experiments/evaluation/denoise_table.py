@@ -271,7 +271,7 @@ def prepare_case(case: dict, root: Path, points: int, noise: float, seed: int, o
     import torch
 
     from dss.io_utils import atomic_write_json
-    from experiments.apps.make_example import write_ply
+    from dss.ply import write_ply
 
     # the case's identity (what its files depend on): not its name, not whether it is held out
     key = {"case": {k: v for k, v in case.items() if k not in ("name", "held_out")}, "points": int(points),
@@ -347,7 +347,7 @@ def _judge(rec: dict, pred: np.ndarray | None, gt: dict) -> dict:
 def _save_output(out: Path | None, pts: np.ndarray | None) -> str | None:
     if out is None or pts is None or not np.isfinite(pts).all():
         return None
-    from experiments.apps.make_example import write_ply
+    from dss.ply import write_ply
 
     out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(out, pts)
@@ -379,7 +379,7 @@ def _prefilter_outliers(noisy: np.ndarray) -> tuple[np.ndarray, dict]:
     import torch
 
     from dss.pointcloud import find_outliers
-    from experiments.apps.denoise import outlier_params
+    from experiments.denoising.inputs import outlier_params
 
     params = outlier_params(OmegaConf.load(REPO_ROOT / "conf" / "denoise.yaml").outliers)
     t0 = time.perf_counter()

@@ -126,7 +126,7 @@ def main(argv=None) -> int:
     from omegaconf import OmegaConf
 
     from dss.io_utils import atomic_write_json, atomic_write_text
-    from experiments.apps.denoise import outlier_params
+    from experiments.denoising.inputs import outlier_params
     from experiments.evaluation.denoise_table import case_list
     from experiments.figures import command_line
 
