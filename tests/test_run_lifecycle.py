@@ -105,10 +105,11 @@ def test_ctrl_c_on_denoise_leaves_no_result_looking_complete(noisy_ply, tmp_path
     run's results removed, no lock file beside the output; a rerun into the directory is not
     refused (only the run's config and log remain)."""
     import experiments.apps.denoise as dn
+    from experiments.denoising import job
 
     out = tmp_path / "run"
     output = tmp_path / "elsewhere" / "mine.ply"
-    monkeypatch.setattr(dn, "score", _interrupt)
+    monkeypatch.setattr(job, "score", _interrupt)
     with pytest.raises(SystemExit) as exit_info:
         dn._main(_cfg("denoise", _denoise(noisy_ply, out, f"output={output}")))
     assert exit_info.value.code == 130
