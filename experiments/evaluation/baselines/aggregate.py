@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from experiments.common import flatten
+
 log = logging.getLogger(__name__)
 
 OK_STATUSES = ("ok", "done", "success", "succeeded")
@@ -41,21 +43,6 @@ TIME_KEYS = ("wall_s", "time_s", "time_s.total", "runtime_s", "total_s", "elapse
 NOT_RESULT = ("input", "metrics_input", "floor", "chamfer_floor")
 #: default accuracy metrics, searched in this order (last dotted component, then preference)
 Y_CANDIDATES = (("chamfer", ("paper", "score")), ("p2m", ("score", "paper")))
-
-
-def flatten(d: Any, prefix: str = "") -> dict:
-    """Nested dicts -> ``{"a.b.c": value}``; lists of scalars are kept as lists."""
-    out: dict = {}
-    if isinstance(d, dict):
-        for k, v in d.items():
-            key = f"{prefix}.{k}" if prefix else str(k)
-            if isinstance(v, dict):
-                out.update(flatten(v, key))
-            else:
-                out[key] = v
-    else:
-        out[prefix or "value"] = d
-    return out
 
 
 def _read_overrides(run_dir: str) -> dict:
