@@ -415,15 +415,11 @@ def plot_level(lv: dict, dss: list[str], classical: list[str], path: Path, title
 
 
 # ------------------------------------------------------------------------------ the app
-def run(cfg: DictConfig, command: str | None = None) -> dict:
-    """Run the benchmark (see the module docstring); returns ``{"out_dir", "records", "summary",
-    "markdown", "files", "skipped", "time_s", "published"}``."""
-    from tqdm.auto import tqdm
+def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
+    """(points, noise levels, seeds), every setting checked before any work (the classical
+    entries' methods and parameters too)."""
+    from experiments.evaluation.baselines.methods import METHODS
 
-    from dss.io_utils import atomic_write_json, atomic_write_text
-    from experiments.common import save_config
-
-    t0 = time.perf_counter()
     points = [int(p) for p in cfg.points]
     noises = [float(n) for n in cfg.noise]
     seeds = [int(s) for s in cfg.seeds]
@@ -431,33 +427,16 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         raise ValueError(f"points must be >= 32 and noise levels positive, got {points}, {noises}")
     if str(cfg.get("dss_noise", "estimate")) not in ("estimate", "given"):
         raise ValueError(f"dss_noise must be estimate or given, got {cfg.dss_noise!r}")
-    from experiments.evaluation.baselines.methods import METHODS
-
     for label, node in (cfg.classical or {}).items():
         if str(node.method) not in METHODS:
             raise ValueError(f"classical.{label}: unknown method {node.method!r}; known: {sorted(METHODS)}")
         bad = sorted(set(plain(node.params) or {}) - set(METHODS[str(node.method)].defaults))
         if bad:
             raise ValueError(f"classical.{label}: unknown parameter(s) {bad} of {node.method}")
-    shapes, skipped = bench_cases(cfg)
-    if not shapes:
-        raise ValueError("no real shapes to run: " + ("; ".join(f"{s['name']}: {s['reason']}" for s in skipped)
-                                                       or f"groups {list(cfg.groups)} are empty"))
-    out = Path(os.path.expanduser(str(cfg.out_dir))).absolute()
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out)
-    n_methods = len(cfg.dss_methods or {}) + len(cfg.classical or {})
-    bar = tqdm(total=len(shapes) * len(points) * len(noises) * len(seeds) * n_methods, desc="real bench",
-               unit="run", disable=not cfg.get("progress", True), dynamic_ncols=True)
-    records = []
-    # cheap levels first: every case of one (points, noise, seed) before the next seed
-    for p in points:
-        for n in noises:
-            for s in seeds:
-                for case in shapes:
-                    records += _run_case(cfg, out, case, p, n, s, bar)
-    bar.close()
-    summary = summarize_bench(records, cfg)
+    return points, noises, seeds
+
+
+def _title_and_notes(cfg: DictConfig, shapes: list[dict], points, noises, seeds) -> tuple[str, list[str]]:
     title = f"Real shapes: {', '.join(map(str, points))} points, noise {', '.join(f'{100 * n:g}%' for n in noises)} " \
             f"x bbox diagonal, seeds {seeds}"
     notes = [f"shapes: {', '.join(sorted({c['name'] for c in shapes}))} (groups {list(cfg.groups)}, "
@@ -469,7 +448,14 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
              f"noise levels in the paper's labels: x{PAPER_LABEL_FACTOR:g} (the paper's test data labelled 1% "
              "measures about 0.5% of the diagonal per axis)",
              f"threads per method: {cfg.threads}; machine: {os.cpu_count()} CPU cores"]
-    md = render_report(summary, title, notes, skipped)
+    return title, notes
+
+
+def _write(cfg: DictConfig, out: Path, title: str, md: str, summary: dict, skipped: list, records: list,
+           command: str | None, t0: float) -> dict:
+    """The charts, report.json, report.md, README.md (and the published copies); the run's result."""
+    from dss.io_utils import atomic_write_json, atomic_write_text
+
     files = {"markdown": "report.md", "json": "report.json", "readme": "README.md", "config": "config.yaml"}
     for lv in summary["levels"]:
         name = f"accuracy_vs_time_{lv['points']}_{lv['noise']:g}_{lv['group']}.png"
@@ -498,6 +484,39 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
                                                              list(files.values()))]
     return {"out_dir": str(out), "records": records, "summary": summary, "markdown": md, "files": files,
             "skipped": skipped, "time_s": elapsed, "published": published}
+
+
+def run(cfg: DictConfig, command: str | None = None) -> dict:
+    """Run the benchmark (see the module docstring); returns ``{"out_dir", "records", "summary",
+    "markdown", "files", "skipped", "time_s", "published"}``."""
+    from tqdm.auto import tqdm
+
+    from experiments.common import save_config
+
+    t0 = time.perf_counter()
+    points, noises, seeds = _levels(cfg)
+    shapes, skipped = bench_cases(cfg)
+    if not shapes:
+        raise ValueError("no real shapes to run: " + ("; ".join(f"{s['name']}: {s['reason']}" for s in skipped)
+                                                       or f"groups {list(cfg.groups)} are empty"))
+    out = Path(os.path.expanduser(str(cfg.out_dir))).absolute()
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out)
+    n_methods = len(cfg.dss_methods or {}) + len(cfg.classical or {})
+    bar = tqdm(total=len(shapes) * len(points) * len(noises) * len(seeds) * n_methods, desc="real bench",
+               unit="run", disable=not cfg.get("progress", True), dynamic_ncols=True)
+    records = []
+    # cheap levels first: every case of one (points, noise, seed) before the next seed
+    for p in points:
+        for n in noises:
+            for s in seeds:
+                for case in shapes:
+                    records += _run_case(cfg, out, case, p, n, s, bar)
+    bar.close()
+    summary = summarize_bench(records, cfg)
+    title, notes = _title_and_notes(cfg, shapes, points, noises, seeds)
+    md = render_report(summary, title, notes, skipped)
+    return _write(cfg, out, title, md, summary, skipped, records, command, t0)
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="real_bench")
