@@ -50,7 +50,7 @@ APPS: dict[str, App] = {
          ("reference=onnx|identity|oracle|l0|slic", "what makes the target images"),
          ("reference.model=ONNX", "your denoiser (dss-train, dss-export); default: the shipped one for the noise"),
          ("device=cpu|cuda|auto", "where the optimisation runs")),
-        ("reference",)),
+        ("reference", "budget", "channel", "fusion")),
     "filter": App(
         "dss-filter", "experiments.apps.filter",
         "Edit geometry through image filters (the paper's DSS-based geometry filtering): render a cloud, "

@@ -130,10 +130,9 @@ def output_normals(points: torch.Tensor, optimized: torch.Tensor, mode: str, k: 
     """Normals written with the denoised cloud: ``"optimized"`` (DSS's own normals) or ``"pca"``
     (a PCA fit on the denoised points, each flipped to agree with its optimised normal).
 
-    Measured on the shipped example (angle to the ground-truth mesh, mean): noisy input PCA 36.6
-    deg, optimised 29.9, PCA of the denoised points 13.4. DSS moves the points onto a smooth
-    surface, but its normals keep part of the per-view noise of the references; the renders of
-    the optimised normals look speckled.
+    On the shipped example with the shipped model (mean angle to the ground-truth mesh,
+    docs/denoising.md "Written normals"): noisy input PCA 36.6 deg, optimised 12.8, PCA of the
+    denoised points 11.9. DSS's normals keep part of the per-view noise of the references.
     """
     if mode == "optimized":
         return optimized
