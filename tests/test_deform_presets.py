@@ -137,7 +137,11 @@ def test_coarse_to_fine_run_records_its_stages(tmp_path):
 
 FAKE_DEFORM = """#!/usr/bin/env python3
 import json, sys
+import yaml
+from experiments.evaluation.deform_presets import effective_config
 args = dict(a.split("=", 1) for a in sys.argv[3:])
+overrides = [a for a in sys.argv[3:] if not a.startswith(("hydra.", "overwrite="))]
+open(args["hydra.run.dir"] + "/config.yaml", "w").write(yaml.safe_dump(effective_config(overrides)))
 metrics = {"chamfer": {"fast": 3.0, "default": 2.0}[args["budget"]], "hausdorff": 60.0, "cpu_time_s": 10.0,
            "wall_time_s": 9.0, "steps": 5, "points": 300, "torch_threads": 1, "budget": {"preset": args["budget"]},
            "topology": {"openings": 1, "openings_target": 2, "holes_total": 3, "holes_total_target": 4,
@@ -166,10 +170,12 @@ def test_presets_chart_collects_resumes_and_counts_failures(tmp_path, monkeypatc
     fake.write_text("#!/bin/sh\nexit 3\n")  # resumed: a finished run is not run again
     capsys.readouterr()
     assert deform_presets.main(args) == 0 and capsys.readouterr().out.count("done before") == 2
-    assert deform_presets.main([*args[:3], "default", "broken", *args[5:]]) == 1  # a failure counts
+    assert deform_presets.main([*args[:3], "default", "best", "huge", *args[5:]]) == 2  # failures count
     doc = json.loads((out / "presets.json").read_text())
-    assert doc["runs"][1]["status"] == "failed" and doc["runs"][1]["why"] == "exit 3"
-    (out / "runs" / "cube_yoga" / "default" / "run.json").write_text("{}")  # other settings: run again
+    assert [r["status"] for r in doc["runs"]] == ["ok", "failed", "failed"]
+    assert doc["runs"][1]["why"] == "exit 3" and "no such preset" in doc["runs"][2]["why"]
+    saved = out / "runs" / "cube_yoga" / "default" / "config.yaml"  # other settings: run again
+    saved.write_text(saved.read_text().replace("image_size: 32", "image_size: 48"))
     assert deform_presets.main(args) == 1
     assert deform_presets.main([*args, "--publish"]) == 2  # a toy (--set) is never published
 

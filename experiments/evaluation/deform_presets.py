@@ -7,8 +7,10 @@
 
 Each run is ``dss-deform scene=<scene> budget=<preset> threads=<threads> progress=false`` (with
 ``OMP_NUM_THREADS`` = threads) in ``<out>/runs/<scene>/<preset>/``, one at a time. A run whose
-``metrics.json`` is there (for the same preset, seed and extra settings) is not run again, so an
-interrupted command resumes with ``--out`` of its folder; an unfinished run is started over.
+``metrics.json`` is there, made with the settings the run would use now (its ``config.yaml``
+against conf/deform.yaml, the scene, the preset and the extra settings; the presets'
+definitions aside) is not run again, so an interrupted command resumes with ``--out`` of its
+folder; an unfinished run, or one whose settings changed, is run again.
 
 Outputs in ``<out>`` (a fresh ``outputs/deform_presets/<date>`` unless given): ``presets.json``
 (per run: Chamfer x1e4 and Hausdorff x1e3 to the target, the process's CPU seconds and wall
@@ -38,6 +40,9 @@ PRESETS = ("fast", "default", "best")
 #: the issue's target for the best preset on the yoga figure (Chamfer x1e4, Hausdorff x1e3, CPU s)
 TARGETS = {"cube_yoga": {"chamfer": 1.5, "hausdorff": 45.0, "cpu_s": 180.0}}
 SUMMARY = ("presets.json", "presets.md")
+#: config keys that do not change a run's result (the presets' definitions, whether it may
+#: replace an earlier run's files)
+IGNORED = ("budgets", "overwrite")
 #: the interpreter that runs dss-deform (tests put a stand-in here)
 PYTHON = sys.executable
 
@@ -70,16 +75,41 @@ def _record(metrics: dict, scene: str, preset: str, command: str) -> dict:
     }
 
 
-def _done(run_dir: Path, key: dict) -> dict | None:
-    """The finished run's metrics when ``run_dir`` holds one made with ``key``'s settings."""
-    m, k = run_dir / "metrics.json", run_dir / "run.json"
-    if not (m.is_file() and k.is_file()):
+def effective_config(overrides: list[str]) -> dict:
+    """The settings a dss-deform run with ``overrides`` uses (conf/deform.yaml, the scene, the
+    budget preset, the overrides; resolved, without the ``budgets`` block): what its
+    ``config.yaml`` holds, less the presets' definitions."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from experiments.apps.deform import apply_budget
+
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("deform", overrides)
+    apply_budget(cfg, {o.split("=", 1)[0].lstrip("+~") for o in overrides})
+    d = OmegaConf.to_container(cfg, resolve=True)
+    for key in IGNORED:
+        d.pop(key, None)
+    return d
+
+
+def _done(run_dir: Path, expected: dict) -> dict | None:
+    """The finished run's metrics when ``run_dir`` holds one made with the ``expected``
+    settings (:func:`effective_config`); None otherwise (absent, unfinished, other settings)."""
+    import yaml
+
+    m, c = run_dir / "metrics.json", run_dir / "config.yaml"
+    if not (m.is_file() and c.is_file()):
         return None
     try:
-        if json.loads(k.read_text()) != key:
+        saved = yaml.safe_load(c.read_text())
+        for key in IGNORED:
+            saved.pop(key, None)
+        if saved != expected:
             return None
         return json.loads(m.read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, yaml.YAMLError, AttributeError):
         return None
 
 
@@ -90,12 +120,17 @@ def run_one(scene: str, preset: str, out: Path, args, python: str | None = None)
     run_dir = out / "runs" / scene / preset
     overrides = _overrides(scene, preset, args)
     key = {"scene": scene, "preset": preset, "overrides": overrides}
+    try:
+        expected = effective_config(overrides)
+    except Exception as e:  # a preset or setting dss-deform would refuse: one line, no run
+        print(f"[{scene} / {preset}] failed: {e}", flush=True)
+        return {"scene": scene, "preset": preset, "status": "failed", "why": str(e), "command": ""}
     env = dict(os.environ)
     if args.threads > 0:
         env["OMP_NUM_THREADS"] = str(args.threads)
     command = " ".join(([f"OMP_NUM_THREADS={args.threads}"] if args.threads > 0 else []) + ["dss-deform"]
                        + [shlex.quote(o) for o in overrides])
-    metrics = _done(run_dir, key)
+    metrics = _done(run_dir, expected)
     if metrics is not None:
         print(f"[{scene} / {preset}] done before: Chamfer {metrics['chamfer']:.3f}", flush=True)
         return _record(metrics, scene, preset, command)
@@ -112,7 +147,7 @@ def run_one(scene: str, preset: str, out: Path, args, python: str | None = None)
         why = f"exit {rc}"
     except subprocess.TimeoutExpired:
         rc, why = -1, f"over --timeout {args.timeout} s"
-    metrics = _done(run_dir, key) if rc == 0 else None
+    metrics = _done(run_dir, expected) if rc == 0 else None
     if metrics is None:
         tail = (run_dir / "log.txt").read_text(errors="replace").strip().splitlines()[-3:]
         print(f"[{scene} / {preset}] failed ({why}): {' | '.join(tail)}", flush=True)
@@ -146,9 +181,11 @@ def plot_scene(records: list[dict], scene: str, path: Path) -> None:
                         if r.get("openings_target") else r["preset"], (x, y), textcoords="offset points",
                         xytext=(5, 4), fontsize=8)
         if key in target:
-            ax.axhline(target[key], color="tab:red", ls="--", lw=0.8)
+            ax.axhline(target[key], color="tab:red", ls="--", lw=0.8, label=f"target: {target[key]:g}")
         if "cpu_s" in target:
-            ax.axvline(target["cpu_s"], color="tab:red", ls=":", lw=0.8)
+            ax.axvline(target["cpu_s"], color="tab:red", ls=":", lw=0.8, label=f"{target['cpu_s']:g} CPU s (3 min)")
+        if target:
+            ax.legend(fontsize=7, loc="upper right")
         ax.set_xlabel("CPU seconds, whole process (one thread)" if all(r.get("torch_threads") == 1 for r in rs)
                       else "CPU seconds, whole process")
         ax.set_ylabel(label)
