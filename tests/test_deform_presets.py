@@ -19,7 +19,7 @@ from dss.render import RenderSettings, render
 from experiments.apps.deform import apply_budget, stage_configs, upsample
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
-TOY = ["start.points=300", "image_size=32", "optimizer.cycles=2", "optimizer.point_steps=2",
+TOY = ["start.points=1500", "image_size=32", "optimizer.cycles=2", "optimizer.point_steps=2",
        "optimizer.normal_steps=1", "optimizer.hull_views=2", "snapshot_steps=[0]", "chamfer_every=0",
        "progress=false", "threads=1"]
 
@@ -123,12 +123,12 @@ def test_coarse_to_fine_run_records_its_stages(tmp_path):
 
     out = tmp_path / "run"
     cfg = _compose([f"target.path={_target(tmp_path)}", *TOY, "optimizer.cycles=3", "coarse.cycles=1",
-                    "coarse.points=120", "coarse.image_size=24", f"+out_dir={out}"])
+                    "coarse.points=400", "coarse.image_size=24", f"+out_dir={out}"])
     m = run(cfg, given=set())
     assert [s["stage"] for s in m["stages"]] == ["coarse", "fine"]
     coarse, fine = m["stages"]
     assert coarse["image_size"] == 24 and fine["image_size"] == 32 and coarse["points"] < fine["points"]
-    assert fine["points"] == m["points"] == 300 - 300 % 6 or fine["points"] == m["points"]
+    assert fine["points"] == m["points"] == 1500 and coarse["points"] == 400
     assert coarse["cycles"] == 1 and fine["cycles"] == 2
     assert m["steps"] == coarse["steps"] + fine["steps"] == 9
     assert m["cpu_time_s"] > 0 and m["budget"]["preset"] == "default"
@@ -186,8 +186,8 @@ def test_presets_chart_runs_dss_deform_and_resumes(tmp_path, capsys):
 
     target = _target(tmp_path)
     out = tmp_path / "chart"
-    toy = ["start.points=300", "image_size=32", "optimizer.point_steps=1", "optimizer.normal_steps=1",
-           "optimizer.hull_views=2", "coarse.points=120", "coarse.image_size=24", "snapshot_steps=[0]",
+    toy = ["start.points=1500", "image_size=32", "optimizer.point_steps=1", "optimizer.normal_steps=1",
+           "optimizer.hull_views=2", "coarse.points=400", "coarse.image_size=24", "snapshot_steps=[0]",
            "chamfer_every=0"]
     args = ["--scenes", "sphere_bunny", "--presets", "default", "fast", "--out", str(out),
             "--set", f"target.path={target}", *toy]

@@ -77,8 +77,17 @@ def test_job_deform_and_train_stages_run_on_the_cpu_at_a_toy_size(tmp_path):
     p, n = sphere_points(600, 0.4)
     for name in ("yoga1_out.ply", "teapot_normal_dense.ply", "bunny-8000.ply"):
         save_ply(data / name, PointCloud(p * torch.tensor([1.0, 1.3, 0.8]), n))
+    import sys
+
+    from torch.utils.cpp_extension import get_default_build_root
+
+    # the kernels this checkout already built (gpu_check.sh's own default is a fresh folder):
+    # torch's folder when TORCH_EXTENSIONS_DIR is not set
+    ext = os.environ.get("TORCH_EXTENSIONS_DIR") or os.path.join(
+        get_default_build_root(), f"py{sys.version_info.major}{sys.version_info.minor}_"
+        + (f"cu{torch.version.cuda.replace('.', '')}" if torch.version.cuda else "cpu"))
     r = _check(tmp_path, ["job", "deform", "train"], PYTHON=os.environ.get("PYTHON", "python"), DEVICE="cpu", TOY=1,
-               DSS_DATA=data, OMP_NUM_THREADS=1, DEADLINE_S=900)
+               DSS_DATA=data, OMP_NUM_THREADS=1, DEADLINE_S=900, TORCH_EXTENSIONS_DIR=ext)
     out = tmp_path / "out"
     assert r.returncode == 0, r.stdout + "".join((out / f"{s}.txt").read_text() for s in ("job", "deform", "train")
                                                   if (out / f"{s}.txt").is_file())

@@ -250,9 +250,11 @@ def stage_train(args) -> int:
 
 
 # ------------------------------------------------------------------------------ main
+# toy sizes: seconds per run on one CPU thread (a sparser start cloud makes the topology metric's
+# disks, sized by the spacing, slow: 400 cube points take 44 s there, 1500 take 7 s in all)
 TOY = {
     "job": ["optimizer.cycles=1", "figures.enabled=false"],
-    "deform": ["start.points=400", "image_size=32", "optimizer.cycles=1", "optimizer.point_steps=2",
+    "deform": ["start.points=1500", "image_size=32", "optimizer.cycles=1", "optimizer.point_steps=2",
                "optimizer.normal_steps=1", "optimizer.hull_views=2", "snapshot_steps=[0]", "chamfer_every=0"],
     "train": ["model.train_crop_size=32", "data.views_per_shape=1", "data.batch_size=2", "data.max_val_pairs=2",
               "trainer.limit_train_batches=2", "trainer.max_epochs=1", "trainer.limit_val_batches=1"],
