@@ -16,7 +16,8 @@ from dss.optimize import MultiViewOptimizer, OptimizerConfig, window_for_cycle
 from dss.pointcloud import PointCloud, save_ply
 from dss.regularizers import bandwidth_for
 from dss.render import RenderSettings, render
-from experiments.apps.deform import apply_budget, stage_configs, upsample
+from experiments.deformation.budget import apply_budget
+from experiments.deformation.stages import stage_configs, upsample
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 TOY = ["start.points=1500", "image_size=32", "optimizer.cycles=2", "optimizer.point_steps=2",

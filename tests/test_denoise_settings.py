@@ -60,7 +60,7 @@ def test_settings_match_the_pinned_choices_and_leave_the_config_alone():
     channels, fusion, explicit optimiser settings; identity, L0 and oracle references) resolves
     to the same optimiser values, notes, budget, render size, channel and fusion passes, and the
     config is the same before and after. The only change in the notes: the budget's threshold is
-    named by its key, ``budget.fast_above`` (conf/budget/auto.yaml)."""
+    named by its key, ``budget.fast_above`` (conf/denoise_parts/budget/auto.yaml)."""
     from dataclasses import asdict
 
     pins = json.loads(PINS.read_text())
@@ -195,13 +195,13 @@ def test_budget_presets_set_views_and_scale_auto_cycles():
     assert views is None and out["cycles"] == 16 and note["views"] == "6 (given)"
     named = OmegaConf.create({"views": None, "image_size": None, "budget": presets["fast"]})
     assert st.budget(named, 10, values, auto)[3]["reason"] == "given"
-    with pytest.raises(ValueError, match="preset of conf/budget"):
+    with pytest.raises(ValueError, match="preset of conf/denoise_parts/budget"):
         st.budget(cfg(budget="huge"), 10, values, auto)
 
 
 def test_budget_channel_and_fusion_groups_compose():
-    """The swappable parts are Hydra groups: budget=fast|default|auto, channel=..., fusion=on|off;
-    the keys inside them still take overrides."""
+    """The swappable parts are Hydra groups (conf/denoise_parts): budget=fast|default|auto,
+    channel=..., fusion=on|off; the keys inside them still take overrides."""
     assert compose_denoise([]).budget.name == "auto"
     fast = compose_denoise(["budget=fast"]).budget
     assert fast.name == "fast" and fast.cycles_scale == 0.5
@@ -212,6 +212,9 @@ def test_budget_channel_and_fusion_groups_compose():
     assert compose_denoise(["fusion=on", "fusion.passes=3"]).fusion.passes == 3
     with pytest.raises(Exception, match="channel"):
         compose_denoise(["channel=plane"])
+    # the groups are dss-denoise's own (its search path): dss-deform's budget stays a plain key
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        assert compose("deform", overrides=["budget=fast"]).budget == "fast"
 
 
 def test_fusion_and_channel_refusals():

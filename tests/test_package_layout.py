@@ -11,12 +11,6 @@ REPO = Path(__file__).resolve().parents[1]
 #: the top-level packages whose imports are checked
 TOP = ("dss", "pix2pix", "data_prep", "experiments", "conf")
 MAX_LINES = 80
-#: functions over MAX_LINES that another branch is rewriting: (file, function) -> why. The test
-#: fails once one of them is short, so that its entry goes.
-KNOWN_LONG = {
-    ("experiments/apps/deform.py", "run"): "dss-deform's run, rewritten on the issue54 branch (budgets, "
-                                           "coarse-to-fine); split into stages there",
-}
 
 
 def _modules():
@@ -139,15 +133,12 @@ def test_nothing_imports_the_apps():
 def test_experiment_functions_are_short():
     """No function in experiments/ is longer than MAX_LINES lines (long jobs are split into
     named stages)."""
-    long, seen = [], set()
+    long = []
     for path in sorted((REPO / "experiments").rglob("*.py")):
         rel = path.relative_to(REPO).as_posix()
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 n = node.end_lineno - node.lineno + 1
                 if n > MAX_LINES:
-                    seen.add((rel, node.name))
-                    if (rel, node.name) not in KNOWN_LONG:
-                        long.append(f"{rel}:{node.lineno} {node.name} ({n} lines)")
+                    long.append(f"{rel}:{node.lineno} {node.name} ({n} lines)")
     assert not long, long
-    assert set(KNOWN_LONG) <= seen, f"short now, remove from KNOWN_LONG: {set(KNOWN_LONG) - seen}"

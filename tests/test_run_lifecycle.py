@@ -124,9 +124,10 @@ def test_ctrl_c_on_denoise_leaves_no_result_looking_complete(noisy_ply, tmp_path
 
 def test_ctrl_c_on_deform_leaves_no_result_looking_complete(noisy_ply, tmp_path, monkeypatch, capsys):
     import experiments.apps.deform as df
+    from experiments.deformation import outputs
 
     out = tmp_path / "deform"
-    monkeypatch.setattr(df, "_plot_curves", _interrupt)  # after final.ply and the snapshots
+    monkeypatch.setattr(outputs, "plot_curves", _interrupt)  # after final.ply and the snapshots
     cfg = _cfg("deform", [f"target.path={noisy_ply}", "start.points=200", "image_size=32", "optimizer.cycles=1",
                           "optimizer.point_steps=1", "optimizer.normal_steps=1", "snapshot_steps=[0]",
                           "chamfer_every=0", "progress=false", f"+out_dir={out}"])

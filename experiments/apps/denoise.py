@@ -10,14 +10,14 @@
 The noisy cloud (normals estimated when missing; rows with NaN/inf reported and dropped; points
 much sparser than the surface removed, ``outliers`` in ``conf/denoise.yaml``, and written to
 ``outliers.ply``) is normalised to a unit bounding-box diagonal. Every cycle 2 views (the
-budget, ``conf/budget``; the paper: 12) are sampled around it, the *input* is rendered with the
+budget, ``conf/denoise_parts/budget``; the paper: 12) are sampled around it, the *input* is rendered with the
 denoiser's training render setting (the model file's metadata) or in the channel of
-``conf/channel`` (planes for the controls, the paper's sun lights at 64 px for the filters),
+``conf/denoise_parts/channel`` (planes for the controls, the paper's sun lights at 64 px for the filters),
 the renders are mapped through the reference generator (``conf/reference``), and DSS optimises
 normals to match them (the paper's local schedule, T_n = 19 normal steps per cycle;
 ``cycles_by_noise`` and ``lr_points_by_noise`` for ``auto``: 4 cycles at 3x the paper's point
 rate at 1% noise) while the projection term moves the points onto the planes of the corrected
-normals; in the planes channel the plane fusion (``conf/fusion``) then moves them onto the
+normals; in the planes channel the plane fusion (``conf/denoise_parts/fusion``) then moves them onto the
 surface the references show. The paper's T_p = 1 image-driven point step per cycle is
 ``optimizer.point_steps=1``: with learned references it made the result worse (docs/denoising.md
 "How each setting was chosen" has the measurements). The stages are in

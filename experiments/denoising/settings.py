@@ -2,8 +2,8 @@
 
 Several settings depend on the cloud: the optimiser's ``auto`` entries on its noise level (the
 ``<key>_by_noise`` tables of ``conf/denoise.yaml``, interpolated in log noise), the
-regularisers' neighbourhood on its point count, the budget preset (``conf/budget/``) on its
-point count, the render channel (``conf/channel/``) and the plane fusion (``conf/fusion/``) on
+regularisers' neighbourhood on its point count, the budget preset (``conf/denoise_parts/budget/``) on its
+point count, the render channel (``conf/denoise_parts/channel/``) and the plane fusion (``conf/denoise_parts/fusion/``) on
 the reference generator. :func:`resolve` settles all of them at once into a
 :class:`Settings`; each step is a function of the config and the steps before it, and
 ``Settings.notes`` / ``Settings.budget`` say what was chosen and why (``metrics.json``).
@@ -27,7 +27,7 @@ __all__ = ["Settings", "resolve", "interpolate_by_noise", "by_noise", "noise_set
 #: optimiser settings that may be ``auto`` (taken from ``<key>_by_noise`` in conf/denoise.yaml)
 BY_NOISE = (("cycles", int), ("lr_points", float), ("projection_weight", float), ("reg_cutoff", float),
             ("final_projection_k", int))
-#: the render channels of ``conf/channel/``
+#: the render channels of ``conf/denoise_parts/channel/``
 CHANNELS = ("auto", "planes", "sun", "point")
 
 
@@ -192,11 +192,11 @@ def neighbourhood(cfg: DictConfig, n_points: int, cutoff, cutoff_note: dict | No
 
 # ------------------------------------------------------------------------------ budget
 def _preset(cfg: DictConfig, n_points: int) -> tuple[str, str, str, Any]:
-    """(setting, preset name, reason, preset node) of ``cfg.budget`` (``conf/budget/``):
+    """(setting, preset name, reason, preset node) of ``cfg.budget`` (``conf/denoise_parts/budget/``):
     ``auto`` picks ``fast`` for more than ``budget.fast_above`` points, else ``default``."""
     node = cfg.get("budget")
     if not isinstance(node, DictConfig) or "name" not in node:
-        raise ValueError(f"budget must be a preset of conf/budget (default | fast | auto), got {node!r}")
+        raise ValueError(f"budget must be a preset of conf/denoise_parts/budget (default | fast | auto), got {node!r}")
     setting = str(node.name)
     if setting != "auto":
         return setting, setting, "given", node
@@ -212,7 +212,7 @@ def budget(cfg: DictConfig, n_points: int, values: dict, notes: dict) -> tuple[d
     """(optimiser values, views or None when given, fusion passes or None when given, note): the
     budget preset applied to the :func:`noise_settings` ``values`` (their ``notes``).
 
-    The preset (``conf/budget/``) sets ``views`` when it is null, the filters' and the planes
+    The preset (``conf/denoise_parts/budget/``) sets ``views`` when it is null, the filters' and the planes
     channel's render sizes (``filter_image_size`` / ``planes_image_size`` in the note) when
     ``image_size`` is null, ``fusion.passes`` when it is null, and scales cycles that came from
     ``cycles_by_noise`` by its ``cycles_scale`` (an explicit ``optimizer.cycles`` is kept) and a
@@ -251,7 +251,7 @@ def render_channel(cfg: DictConfig, generator, budget_note: dict):
     """(render spec, its source, shading, shading name) for ``generator``.
 
     A model renders in its training data's channel at its size (its metadata). Filters, identity
-    and the oracle take ``cfg.channel`` (``conf/channel/``): ``planes``
+    and the oracle take ``cfg.channel`` (``conf/denoise_parts/channel/``): ``planes``
     (``conf/render/planes.yaml`` at its own size, or ``image_size``), ``point``
     (``conf/render/pairs.yaml``'s light) or ``sun`` (the paper's three RGB lights with pairs.yaml's
     cameras), both at ``image_size`` or the budget's ``filter_image_size``; ``auto``: planes for
@@ -283,7 +283,7 @@ def render_channel(cfg: DictConfig, generator, budget_note: dict):
 
 
 def fusion_config(node, shading):
-    """The :class:`dss.fusion.FusionConfig` of a ``fusion`` block (``conf/fusion/``), or None
+    """The :class:`dss.fusion.FusionConfig` of a ``fusion`` block (``conf/denoise_parts/fusion/``), or None
     when the stage is off (``enabled: auto``: on in the planes channel). A bad block is refused."""
     from dss.fusion import FusionConfig
 

@@ -46,15 +46,54 @@ from scipy.spatial import cKDTree
 __all__ = ["main", "trace"]
 
 
-def trace(run: Path, far: float = 0.02, views: int = 12, candidates: int = 512, seed: int = 0) -> dict:
+def _aimed_views(tp, tn, missed, radius: float, fov: float, size: int, settings, candidates: int, views: int):
+    """(directions, candidate cameras, chosen indices): ``views`` of ``candidates`` directions on
+    the sphere chosen greedily to see the most missed target points."""
+    from dss.cameras import fibonacci_sphere, fit_distance, focal_from_fov, look_at
+    from dss.orientation import views_seeing
+
+    dirs = fibonacci_sphere(candidates)
+    cand = look_at(dirs * fit_distance(radius, fov), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), focal_from_fov(fov, size),
+                   (size, size))
+    seen = torch.cat([views_seeing(tp, tn, cand[list(range(i, min(i + 64, candidates)))], settings)[:, missed]
+                      for i in range(0, candidates, 64)])
+    chosen, covered = [], torch.zeros(int(missed.sum()), dtype=torch.bool)
+    for _ in range(views):  # greedy cover of the missed points
+        gain = (seen & ~covered).sum(1)
+        best = int(gain.argmax())
+        chosen.append(best)
+        covered |= seen[best]
+    return dirs, cand, chosen
+
+
+def _unseen(rp, rn, tp, tn, radius: float, fov: float, size: int, settings):
+    """(note, the result's metrics, its points' distances to the target's 8 nearest): the
+    result's points no view of a 64-view sphere sees (inside the shape: neither image gradient
+    nor hull pull), how many lie inside the target, and the metrics without them."""
     from dss.cameras import fibonacci_sphere, fit_distance, focal_from_fov, look_at
     from dss.metrics import evaluate
+    from dss.orientation import views_seeing
+
+    ring = look_at(fibonacci_sphere(64) * fit_distance(radius, fov), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0),
+                   focal_from_fov(fov, size), (size, size))
+    seen_any = views_seeing(rp, rn, ring, settings).any(0)
+    d_r, j = cKDTree(tp.numpy()).query(rp.numpy(), k=8)
+    side = ((rp.numpy()[:, None, :] - tp.numpy()[j]) * tn.numpy()[j]).sum(-1)
+    inside = torch.from_numpy((side < 0).mean(1) > 0.5)
+    full, visible = evaluate(rp, tp, protocol="paper"), evaluate(rp[seen_any], tp, protocol="paper")
+    unseen = {"points": int((~seen_any).sum()), "inside_target": int((~seen_any & inside).sum()),
+              "chamfer_hausdorff": [full.chamfer, full.hausdorff],
+              "chamfer_hausdorff_without_them": [visible.chamfer, visible.hausdorff]}
+    return unseen, full, d_r
+
+
+def trace(run: Path, far: float = 0.02, views: int = 12, candidates: int = 512, seed: int = 0) -> dict:
     from dss.orientation import views_seeing
     from dss.pointcloud import load_ply, normalize_unit_diagonal
     from dss.render import render
     from dss.views import SphereViewSampler, error_aware_cameras
-    from experiments.apps.deform import load_target
     from experiments.common import renderer_settings
+    from experiments.deformation.inputs import load_target
 
     cfg = OmegaConf.load(run / "config.yaml")
     target = load_target(cfg.target.path, cfg.target.points, cfg.seed)
@@ -99,28 +138,8 @@ def trace(run: Path, far: float = 0.02, views: int = 12, candidates: int = 512, 
     residual = (shade(rp, rn, first) - shade(tp, tn, first)).abs().sum(-1)
     ea, focus = error_aware_cameras(rp, first, residual, views, distance=float(cfg.optimizer.error_aware_distance),
                                     generator=torch.Generator().manual_seed(seed))
-    dirs = fibonacci_sphere(candidates)
-    cand = look_at(dirs * fit_distance(radius, fov), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), focal_from_fov(fov, size),
-                   (size, size))
-    seen = torch.cat([views_seeing(tp, tn, cand[list(range(i, min(i + 64, candidates)))], settings)[:, missed]
-                      for i in range(0, candidates, 64)])
-    chosen, covered = [], torch.zeros(int(missed.sum()), dtype=torch.bool)
-    for _ in range(views):  # greedy cover of the missed points
-        gain = (seen & ~covered).sum(1)
-        best = int(gain.argmax())
-        chosen.append(best)
-        covered |= seen[best]
-    # the result's points no view sees (inside the shape: neither image gradient nor hull pull)
-    ring = look_at(fibonacci_sphere(64) * fit_distance(radius, fov), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0),
-                   focal_from_fov(fov, size), (size, size))
-    seen_any = views_seeing(rp, rn, ring, settings).any(0)
-    d_r, j = cKDTree(tp.numpy()).query(rp.numpy(), k=8)
-    side = ((rp.numpy()[:, None, :] - tp.numpy()[j]) * tn.numpy()[j]).sum(-1)
-    inside = torch.from_numpy((side < 0).mean(1) > 0.5)
-    full, visible = evaluate(rp, tp, protocol="paper"), evaluate(rp[seen_any], tp, protocol="paper")
-    unseen = {"points": int((~seen_any).sum()), "inside_target": int((~seen_any & inside).sum()),
-              "chamfer_hausdorff": [full.chamfer, full.hausdorff],
-              "chamfer_hausdorff_without_them": [visible.chamfer, visible.hausdorff]}
+    dirs, cand, chosen = _aimed_views(tp, tn, missed, radius, fov, size, settings, candidates, views)
+    unseen, full, d_r = _unseen(rp, rn, tp, tn, radius, fov, size, settings)
     # Hausdorff x1e3 in the paper protocol's units: the distances scaled like evaluate's
     scale = full.hausdorff / max(float(d_t.max()), float(d_r[:, 0].max()))
     sides = {"target_to_result": float(d_t.max()) * scale, "result_to_target": float(d_r[:, 0].max()) * scale,

@@ -82,7 +82,7 @@ def effective_config(overrides: list[str]) -> dict:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from experiments.apps.deform import apply_budget
+    from experiments.deformation.budget import apply_budget
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
