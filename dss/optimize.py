@@ -396,8 +396,10 @@ class MultiViewOptimizer:
         # the divergence guard's yardstick: the start cloud or the cameras' sphere, the larger
         self._start = self.points.detach().clone()  # max_displacement's centres
         self._extent0 = max(float((p.max(0).values - p.min(0).values).norm()), 2 * float(radius), 1e-12)
-        self.proj.set_initial_shape(p)
-        self.rep.set_initial_shape(p)
+        # a rule fixes D from the start cloud; a number given as the bandwidth is D
+        for term in (self.proj, self.rep):
+            if term.bandwidth is None:
+                term.set_initial_shape(p)
         self.lr_scale = 1.0
         self._img_grad_scale: float | None = None
         self._reg_gamma: dict[int, float] = {}

@@ -27,7 +27,7 @@ class App:
         module: the module with the task function (and ``ARTEFACTS`` when it claims its run directory).
         about: what the command does and writes, one paragraph.
         options: the most-used overrides, ``(key=value, what)``; each key is a config key or group.
-        groups: the config groups under ``conf/`` the app reads (listed with their options).
+        groups: the config groups the app reads (folders under ``conf/``; listed with their options).
     """
 
     command: str
@@ -50,7 +50,7 @@ APPS: dict[str, App] = {
          ("reference=onnx|identity|oracle|l0|slic", "what makes the target images"),
          ("reference.model=ONNX", "your denoiser (dss-train, dss-export); default: the shipped one for the noise"),
          ("device=cpu|cuda|auto", "where the optimisation runs")),
-        ("reference",)),
+        ("reference", "denoise_parts/budget", "denoise_parts/channel", "denoise_parts/fusion")),
     "filter": App(
         "dss-filter", "experiments.apps.filter",
         "Edit geometry through image filters (the paper's DSS-based geometry filtering): render a cloud, "
@@ -156,9 +156,9 @@ def _groups(groups: tuple[str, ...]) -> list[str]:
     if not groups:
         return []
     lines = ["== Configuration groups ==", "Compose your configuration from these groups (group=option)", ""]
-    for g in groups:
+    for g in groups:  # a folder under conf/ (an app's own groups sit below its search path)
         options = sorted(p.stem for p in (_CONF / g).glob("*.yaml"))
-        lines.append(f"{g}: {', '.join(options)}")
+        lines.append(f"{g.split('/')[-1]}: {', '.join(options)}")
     return lines + [""]
 
 

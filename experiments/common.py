@@ -17,6 +17,21 @@ __all__ = ["run_dir", "save_config", "save_metrics", "positional_to_override", "
            "prepare_kernels"]
 
 
+def flatten(d, prefix: str = "") -> dict:
+    """Nested dicts -> ``{"a.b.c": value}``; lists of scalars are kept as lists."""
+    out: dict = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            key = f"{prefix}.{k}" if prefix else str(k)
+            if isinstance(v, dict):
+                out.update(flatten(v, key))
+            else:
+                out[key] = v
+    else:
+        out[prefix or "value"] = d
+    return out
+
+
 def run_dir(cfg: DictConfig | None = None) -> Path:
     """The Hydra run directory when running under Hydra, else ``cfg.out_dir`` or the cwd."""
     try:

@@ -60,7 +60,7 @@ def check(node) -> bool:
 
 def _scalars(d: dict) -> dict[str, float]:
     """Finite int/float leaves of a nested dict as ``{"a.b": value}`` (bools, strings and lists dropped)."""
-    from experiments.evaluation.baselines.aggregate import flatten
+    from experiments.common import flatten
 
     return {k: v for k, v in flatten(d).items()
             if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}

@@ -107,8 +107,8 @@ def _holder(path: Path):
 
 
 def test_a_second_run_into_a_claimed_directory_fails_at_once(sphere_ply, tmp_path):
-    from experiments.common import OutputInUseError, release_claims
     from experiments.apps.render import run
+    from experiments.common import OutputInUseError, release_claims
 
     out = tmp_path / "busy"
     holder = _holder(out)
@@ -154,7 +154,7 @@ def _denoise_overrides(cloud: Path, out: Path, *extra: str) -> list[str]:
 @pytest.fixture(scope="module")
 def noisy_with_outliers(tmp_path_factory) -> Path:
     from data_prep.sampling import noisy_copy
-    from experiments.apps.make_example import write_ply
+    from dss.ply import write_ply
 
     p, _ = sphere_points(1500, 0.4)
     noisy = noisy_copy(p.numpy(), 0.01, seed=1)
@@ -165,8 +165,8 @@ def noisy_with_outliers(tmp_path_factory) -> Path:
 
 
 def test_denoise_refuses_a_used_run_dir_and_overwrite_leaves_no_stale_file(noisy_with_outliers, tmp_path):
-    from experiments.common import OutputExistsError
     from experiments.apps.denoise import run
+    from experiments.common import OutputExistsError
 
     out = tmp_path / "run"
     m = run(compose_cfg("denoise", _denoise_overrides(noisy_with_outliers, out)))

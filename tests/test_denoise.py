@@ -11,7 +11,6 @@ not denoising quality.
 from __future__ import annotations
 
 import json
-import math
 import shutil
 from pathlib import Path
 
@@ -28,9 +27,9 @@ from data_prep.shapes import make_shape
 from dss.metrics import evaluate
 from dss.optimize import OptimizerConfig
 from dss.pipeline import ReferenceImageError, estimate_noise_level, refine_with_reference
+from dss.ply import write_ply
 from dss.pointcloud import PointCloud, PointCloudError, estimate_normals, save_ply
 from dss.render import render
-from experiments.apps.make_example import write_ply
 
 try:
     from tests.pix2pix_fixtures import subprocess_env, wandb_offline_env  # noqa: F401  (fixture)
@@ -121,7 +120,7 @@ def test_estimate_noise_level(family, seed):
 
 
 def test_select_model_by_noise(tmp_path, monkeypatch):
-    import experiments.apps.reference_generators as rg
+    import experiments.denoising.reference_generators as rg
 
     monkeypatch.setattr(rg, "ASSETS_DIR", tmp_path)
     with pytest.raises(rg.ModelNotFoundError, match=r"denoiser_noise_1pct\.onnx.*does not exist.*reference=l0"):
@@ -153,7 +152,7 @@ def test_pipeline_improves_chamfer(case):
     derivative is sign(d) / s however small d is: full-strength gradients from rounding noise.
     Both renders now use the same projection, so the identity reference gives exactly zero image
     gradient at the start of each cycle."""
-    from experiments.apps.reference_generators import L0Reference, SpecViewSampler
+    from experiments.denoising.reference_generators import L0Reference, SpecViewSampler
 
     spec = load_render_spec(image_size=[64, 64])
     settings, light = spec.render_settings(), spec.point_light()
@@ -217,7 +216,7 @@ def test_reference_renderer_keeps_background_and_checks_output(case):
 
 
 def test_onnx_reference_masks_and_batches(case, tiny_onnx):
-    from experiments.apps.reference_generators import OnnxReference
+    from experiments.denoising.reference_generators import OnnxReference
 
     gen = OnnxReference(tiny_onnx, threads=1, max_batch=2)
     spec, source = gen.render_spec()
@@ -314,7 +313,7 @@ def test_denoise_app_onnx_configures_from_model(case, tmp_path, tiny_onnx):
 
 
 def test_denoise_app_picks_shipped_model_by_hint(case, tmp_path, tiny_onnx, monkeypatch):
-    import experiments.apps.reference_generators as rg
+    import experiments.denoising.reference_generators as rg
     from experiments.apps.denoise import run
 
     assets = tmp_path / "assets"
@@ -421,7 +420,7 @@ def test_denoise_app_runs_on_a_gpu(case, tmp_path):
 def test_shipped_example_is_complete_and_consistent():
     """The no-argument run's input: files present, small, and matching their provenance."""
     from dss.metrics import load_mesh, load_points
-    from experiments.apps.denoise import EXAMPLE_DIR, EXAMPLE_FILES
+    from experiments.denoising.inputs import EXAMPLE_DIR, EXAMPLE_FILES
 
     files = [EXAMPLE_DIR / f for f in EXAMPLE_FILES.values()]
     assert all(f.is_file() for f in files)
@@ -436,7 +435,7 @@ def test_shipped_example_is_complete_and_consistent():
 
 
 def test_output_normals_pca_takes_signs_from_the_optimised_ones():
-    from experiments.apps.denoise import output_normals
+    from experiments.denoising.refine import output_normals
 
     g = torch.Generator().manual_seed(0)
     pts = torch.cat([torch.rand(400, 2, generator=g), 0.001 * torch.randn(400, 1, generator=g)], dim=1)
@@ -448,144 +447,6 @@ def test_output_normals_pca_takes_signs_from_the_optimised_ones():
     assert output_normals(pts, opt, "optimized") is opt
     with pytest.raises(ValueError, match="normals.output"):
         output_normals(pts, opt, "nope")
-
-
-def test_auto_cycles_follow_the_noise_level():
-    """cycles=auto: the table interpolated in log noise (rounded), its end values beyond it; the
-    point rate takes the rounding, so cycles x rate is continuous."""
-    from omegaconf import OmegaConf
-
-    from experiments.apps.denoise import resolve_all_by_noise, resolve_by_noise
-
-    def resolve_cycles(c, noise):
-        return resolve_by_noise(c, noise, "cycles", int)
-
-    cfg = OmegaConf.create({"optimizer": {"cycles": "auto"}, "cycles_by_noise": {0.003: 2, 0.01: 16}})
-    assert resolve_cycles(cfg, 0.002)["used"] == 2 and cfg.optimizer.cycles == 2
-    cfg.optimizer.cycles = "auto"
-    note = resolve_cycles(cfg, 0.02)
-    assert note["used"] == 16 and cfg.optimizer.cycles == 16
-    cfg.optimizer.cycles = "auto"
-    mid = math.sqrt(0.003 * 0.01)  # half way in log noise: the geometric mean of 2 and 16
-    note = resolve_cycles(cfg, mid)
-    assert note["exact"] == pytest.approx(math.sqrt(2 * 16)) and note["used"] == 6
-    fixed = OmegaConf.create({"optimizer": {"cycles": 5}})
-    assert resolve_cycles(fixed, 0.003) == {"setting": 5, "used": 5}
-    with pytest.raises(ValueError, match="cycles_by_noise"):
-        resolve_cycles(OmegaConf.create({"optimizer": {"cycles": "auto"}}), 0.01)
-    # no jump between two tuned levels: cycles x rate moves continuously
-    products = []
-    for noise in np.geomspace(0.003, 0.01, 41):
-        c = OmegaConf.create({"optimizer": {k: "auto" for k in ("cycles", "lr_points", "projection_weight",
-                                                                 "reg_cutoff", "final_projection_k")},
-                              "cycles_by_noise": {0.003: 2, 0.01: 16}, "lr_points_by_noise": {0.003: 5, 0.01: 15},
-                              "projection_weight_by_noise": {0.003: 0.1}, "reg_cutoff_by_noise": {0.003: 1},
-                              "final_projection_k_by_noise": {0.003: 32}})
-        resolve_all_by_noise(c, float(noise))
-        products.append(c.optimizer.cycles * c.optimizer.lr_points)
-    steps = np.diff(np.log(products))
-    assert (steps > 0).all() and steps.max() < 2.5 * steps.min()
-
-
-def test_auto_projection_weight_follows_the_noise_level():
-    from omegaconf import OmegaConf
-
-    from experiments.apps.denoise import interpolate_by_noise, resolve_by_noise
-
-    cfg = OmegaConf.create({"optimizer": {"projection_weight": "auto"},
-                            "projection_weight_by_noise": {0.01: 0.1, 0.02: 0.5}})
-    note = resolve_by_noise(cfg, 0.025, "projection_weight")
-    assert note["used"] == 0.5 and cfg.optimizer.projection_weight == 0.5
-    cfg.optimizer.projection_weight = "auto"
-    assert resolve_by_noise(cfg, 0.014, "projection_weight")["used"] == pytest.approx(
-        0.1 * 5 ** (math.log(1.4) / math.log(2)))
-    fixed = OmegaConf.create({"optimizer": {"projection_weight": 0.3}})
-    assert resolve_by_noise(fixed, 0.02, "projection_weight") == {"setting": 0.3, "used": 0.3}
-    with pytest.raises(ValueError, match="projection_weight_by_noise"):
-        resolve_by_noise(OmegaConf.create({"optimizer": {"projection_weight": "auto"}}), 0.01, "projection_weight")
-    # a table with a zero interpolates linearly
-    assert interpolate_by_noise({0.01: 0.0, 0.04: 1.0}, 0.02) == pytest.approx(0.5)
-
-
-def test_shipped_config_resolves_every_auto_setting():
-    """conf/denoise.yaml: every ``auto`` optimiser entry has its table; 2% noise widens the
-    regularisers' neighbourhood (reg_cutoff 3) and the final outlier projection's (k 96), 1%
-    keeps the paper's cutoff (1) and k 32."""
-    from omegaconf import OmegaConf
-
-    from experiments.apps.denoise import BY_NOISE, resolve_all_by_noise
-
-    conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
-    for noise, cutoff, k in ((0.01, 1.0, 32), (0.02, 3.0, 96), (0.03, 3.0, 96)):
-        cfg = OmegaConf.load(conf)
-        notes = resolve_all_by_noise(cfg, noise)
-        assert set(notes) == {k for k, _ in BY_NOISE}
-        assert cfg.optimizer.reg_cutoff == cutoff and notes["reg_cutoff"]["used"] == cutoff
-        assert cfg.optimizer.final_projection_k == k and notes["final_projection_k"]["used"] == k
-
-
-def test_neighbourhood_dilation_follows_density():
-    """reg_dilation=auto: 1 up to ~30K points (the tuned setting), 5 at 100K, capped; the cutoff
-    from the noise table grows to sqrt(d) only when it was auto itself."""
-    from omegaconf import OmegaConf
-
-    from experiments.apps.denoise import resolve_all_by_noise, resolve_neighbourhood
-
-    conf = Path(__file__).resolve().parents[1] / "conf" / "denoise.yaml"
-    for n, d, cutoff in ((10000, 1, 1.0), (20000, 1, 1.0), (50000, 3, math.sqrt(3)), (100000, 5, math.sqrt(5)),
-                         (10**7, 8, math.sqrt(8))):
-        cfg = OmegaConf.load(conf)
-        notes = resolve_all_by_noise(cfg, 0.01, n)
-        assert cfg.optimizer.reg_dilation == d and notes["reg_dilation"]["used"] == d
-        assert cfg.optimizer.reg_cutoff == pytest.approx(cutoff) and notes["reg_cutoff"]["used"] == pytest.approx(cutoff)
-    cfg = OmegaConf.load(conf)
-    resolve_all_by_noise(cfg, 0.02, 100000)  # the 2% table's 3 x D already exceeds sqrt(5)
-    assert cfg.optimizer.reg_dilation == 5 and cfg.optimizer.reg_cutoff == 3.0
-    fixed = OmegaConf.create({"optimizer": {"reg_dilation": "auto", "reg_cutoff": 1.5}})
-    note = resolve_neighbourhood(fixed, 100000, {"setting": 1.5, "used": 1.5})
-    assert fixed.optimizer.reg_dilation == 5 and fixed.optimizer.reg_cutoff == 1.5 and "reg_cutoff" not in note
-    given = OmegaConf.create({"optimizer": {"reg_dilation": 2}})
-    assert resolve_neighbourhood(given, 100000) == {"setting": 2, "used": 2}
-    with pytest.raises(ValueError, match="point count"):
-        resolve_neighbourhood(OmegaConf.create({"optimizer": {"reg_dilation": "auto"}}), 0)
-
-
-def test_budget_presets_set_views_and_scale_auto_cycles():
-    from omegaconf import OmegaConf
-
-    from experiments.apps.denoise import resolve_budget
-
-    def cfg(**kw):
-        return OmegaConf.create({"views": None, "budget": "auto", "budget_fast_above": 1000,
-                                 "budgets": {"default": {"views": 12, "cycles_scale": 1.0, "filter_image_size": 64},
-                                             "fast": {"views": 4, "cycles_scale": 0.5, "lr_points_scale": 2.0,
-                                                      "fusion_passes": 2, "planes_image_size": 192}},
-                                 "image_size": None, "optimizer": {"cycles": 16, "lr_points": 15.0},
-                                 "fusion": {"passes": None}, **kw})
-
-    auto = {"setting": "auto", "used": 16}
-    lr_auto = {"setting": "auto", "used": 15.0}
-    c = cfg()
-    note = resolve_budget(c, 1000, auto, lr_auto)
-    assert note["used"] == "default" and c.views == 12 and c.optimizer.cycles == 16 and c.optimizer.lr_points == 15
-    assert note["filter_image_size"] == 64  # the filters' render size; a given image_size wins
-    assert "filter_image_size" not in resolve_budget(cfg(image_size=128), 1000, auto)
-    c = cfg()
-    note = resolve_budget(c, 1001, auto, lr_auto)  # half the cycles, twice the point rate
-    assert note["used"] == "fast" and c.views == 4 and c.optimizer.cycles == 8 and c.optimizer.lr_points == 30
-    assert c.fusion.passes == 2 and note["planes_image_size"] == 192
-    c = cfg()  # a given point rate is kept
-    resolve_budget(c, 1001, auto, {"setting": 15.0, "used": 15.0})
-    assert c.optimizer.lr_points == 15
-    assert cfg().fusion.passes is None and resolve_budget(c := cfg(), 10, auto) and c.fusion.passes == 4
-    c = cfg(fusion={"passes": 3}, image_size=128)  # a given fusion.passes and image_size win
-    note = resolve_budget(c, 1001, auto)
-    assert c.fusion.passes == 3 and "planes_image_size" not in note
-    c = cfg(views=6)  # explicit views and cycles win over the preset
-    note = resolve_budget(c, 5000, {"setting": 16, "used": 16})
-    assert c.views == 6 and c.optimizer.cycles == 16 and note["views"] == "6 (given)"
-    with pytest.raises(ValueError, match="no preset 'huge'"):
-        resolve_budget(cfg(budget="huge"), 10, auto)
 
 
 # ------------------------------------------------------------------------------- sweeps, W&B

@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 
 import experiments.evaluation.denoise_table as dt
 from dss.metrics import evaluate, load_mesh, load_points
+from experiments.evaluation.table import cases, report, runners
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 # open3d is a core dependency (cgal and pymeshlab are the optional `baselines` extra)
@@ -146,8 +147,8 @@ def test_resume_skips_completed_records(table, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("a completed record was rerun")
 
-    monkeypatch.setattr(dt, "_run_dss", boom)
-    monkeypatch.setattr(dt, "run_method", boom)
+    monkeypatch.setattr(runners, "run_dss", boom)
+    monkeypatch.setattr(runners, "run_method", boom)
     res = dt.run(make_cfg(out, fakes))
     assert {p.name: p.read_text() for p in (out / "records/tiny").glob("*.json")} == before
     assert res["markdown"].split("## Cases")[0] == table["res"]["markdown"].split("## Cases")[0]
@@ -160,7 +161,7 @@ def test_resume_skips_completed_records(table, monkeypatch):
         calls.append((spec, k.get("params")))
         return run_method(spec, *a, **k)
 
-    monkeypatch.setattr(dt, "run_method", counting)
+    monkeypatch.setattr(runners, "run_method", counting)
     (out / "records/tiny/open3d_taubin.json").unlink()
     res = dt.run(make_cfg(out, fakes, METHODS, "+params.open3d_mls.max_nn=8"))
     assert sorted(c[0] for c in calls) == ["open3d_mls", "open3d_taubin"]
@@ -177,32 +178,32 @@ def test_config_errors_before_any_work(tmp_path, fakes):
 
 
 def test_generated_cases_and_paths(tmp_path):
-    shapes = dt.test_split_shapes(3, "cpu")
+    shapes = cases.test_split_shapes(3, "cpu")
     # the first test shape of the cpu preset is the shipped example (experiments/apps/make_example.py)
     assert (shapes[0]["family"], shapes[0]["index"]) == ("superquadric", 26)
     assert len({s["family"] for s in shapes}) == 3 and all(s["resolution"] == 96 for s in shapes)
     # ... and at 20K points and 1% noise its case files are the shipped example's, bit for bit
-    example = dt.REPO_ROOT / "experiments/assets/example"
+    example = cases.REPO_ROOT / "experiments/assets/example"
     if (example / "noisy_1pct.ply").is_file():
-        meta = dt.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.01, seed=0)
+        meta = cases.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.01, seed=0)
         assert meta["status"] == "ready" and meta["source"]["shape_seed"] == 787853971
         for ours, shipped in (("noisy.ply", "noisy_1pct.ply"), ("clean.ply", "clean.ply")):
             np.testing.assert_array_equal(load_points(tmp_path / "ex" / ours), load_points(example / shipped))
-        again = dt.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.01, seed=0)  # cached: not remade
+        again = cases.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.01, seed=0)  # cached: not remade
         assert again == meta
         with pytest.raises(ValueError, match="made with other settings.*overwrite=true"):
-            dt.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.003, seed=0)
+            cases.prepare_case(shapes[0], tmp_path / "ex", 20000, 0.003, seed=0)
     # resolved: ../shared may be a link (as in a checkout that links the shared data beside it)
-    assert dt.resolve_repo_path("../shared/data/K.ply") == (dt.REPO_ROOT.parent / "shared/data/K.ply").resolve()
-    assert dt.resolve_repo_path("/abs/x.ply") == Path("/abs/x.ply")
+    assert cases.resolve_repo_path("../shared/data/K.ply") == (cases.REPO_ROOT.parent / "shared/data/K.ply").resolve()
+    assert cases.resolve_repo_path("/abs/x.ply") == Path("/abs/x.ply")
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("denoise_table")
     assert cfg.published_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
-    labels = dt.method_list(cfg)
+    labels = runners.method_list(cfg)
     assert labels[-6:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle", "dss_pix2pix_fast",
                            "dss_identity_fast"] and "cgal_jet" in labels
-    assert "budget=fast" in dt._request("dss_identity_fast", cfg, 0.01)["overrides"]
-    req = dt._request("dss_pix2pix", cfg, 0.01)
+    assert "budget=fast" in runners.request("dss_identity_fast", cfg, 0.01)["overrides"]
+    req = runners.request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
 
 
@@ -215,18 +216,16 @@ def test_meshlab_sample_cases(tmp_path, monkeypatch):
         import pymeshlab  # noqa: F401
     except ImportError:
         with pytest.raises(RuntimeError, match="needs pymeshlab"):
-            dt.case_list(cfg)
+            cases.case_list(cfg)
         return
-    names = [c["name"] for c in dt.case_list(cfg)]
+    names = [c["name"] for c in cases.case_list(cfg)]
     assert names == ["kangaroo", "bunny", "cow", "airplane", "bone", "face", "superquadric-0026"]
-    bone = next(c for c in dt.case_list(cfg) if c["name"] == "bone")
-    meta = dt.prepare_case(bone, tmp_path / "bone", 2000, 0.01, seed=0)  # a real mesh file becomes a case
+    bone = next(c for c in cases.case_list(cfg) if c["name"] == "bone")
+    meta = cases.prepare_case(bone, tmp_path / "bone", 2000, 0.01, seed=0)  # a real mesh file becomes a case
     assert meta["status"] == "ready" and (tmp_path / "bone" / "noisy.ply").is_file()
-    import experiments.evaluation.denoise_table as mod
-
     monkeypatch.setitem(sys.modules, "pymeshlab", None)  # as if the extra were not installed
     with pytest.raises(RuntimeError, match="needs pymeshlab"):
-        mod.meshlab_sample_cases()
+        cases.meshlab_sample_cases()
 
 
 def test_markdown_marks_partial_means_and_worse_than_input():
@@ -239,10 +238,10 @@ def test_markdown_marks_partial_means_and_worse_than_input():
             rec("a", "good", "ok", 0.5, 2.0), rec("b", "good", "ok", 0.7, 4.0),
             rec("a", "half", "ok", 0.1), rec("b", "half", "crash"),
             rec("a", "bad", "worse_than_input", 1.5), rec("b", "bad", "ok", 1.9)]
-    rows = dt.summarize(recs, ["good", "half", "bad"], ["a", "b"])
+    rows = report.summarize(recs, ["good", "half", "bad"], ["a", "b"])
     info = [{"name": c, "status": "ready", "key": {"points": 10, "noise": 0.01, "case": {}},
              "source": {"family": "x", "index": 0}} for c in ("a", "b")]
-    md = _md_rows(dt.render_markdown(rows, info, "t", []))
+    md = _md_rows(report.render_markdown(rows, info, "t", []))
     # columns: a CD, a HD, a P2M, b CD, b HD, b P2M, mean CD, mean HD, mean P2M, time
     assert md["half"][0] == "**0.1**" and md["half"][3] == "crash" and md["half"][6] == "0.1 (1/2)"
     assert md["good"][6] == "**0.6**" and md["good"][9] == "3" and md["bad"][9] == "**1**"  # fastest complete
@@ -250,16 +249,16 @@ def test_markdown_marks_partial_means_and_worse_than_input():
     good = next(r for r in rows if r["method"] == "good")
     assert good["pareto"] == {"chamfer": True, "p2m": True} and np.isclose(good["mean"]["p2m"], 0.3)
     assert "half" not in [r["method"] for r in rows if r["pareto"].get("chamfer")]
-    halves = dt.render_markdown(rows, info, "t", []).split("## Accuracy and coverage")[1].split("## Cases")[0]
+    halves = report.render_markdown(rows, info, "t", []).split("## Accuracy and coverage")[1].split("## Cases")[0]
     assert "| good |" in halves and "| half |" not in halves  # complete rows only
     # b held out: its own columns after the tuning cases and its own mean; "mean" is a's alone
-    rows = dt.summarize(recs, ["good", "half", "bad"], ["a", "b"], held_out={"b"})
+    rows = report.summarize(recs, ["good", "half", "bad"], ["a", "b"], held_out={"b"})
     good = next(r for r in rows if r["method"] == "good")
     assert good["mean"]["chamfer"] == 0.5 and good["mean_held_out"]["chamfer"] == 0.7 and good["complete_held_out"]
     half = next(r for r in rows if r["method"] == "half")
     assert half["complete"] and not half["complete_held_out"] and half["n_scored_held_out"] == 0
     info_h = [{**info[0], "held_out": False}, {**info[1], "held_out": True}]
-    text = dt.render_markdown(rows, info_h, "t", [])
+    text = report.render_markdown(rows, info_h, "t", [])
     head = next(line for line in text.splitlines() if line.startswith("| method"))
     assert "| b (held out) CD |" in head and "| held-out mean CD |" in head
     md = _md_rows(text)
@@ -327,11 +326,11 @@ def test_dss_request_names_the_shipped_model_it_uses():
     holds that file's hash (per case noise), and an explicit model path is left to the overrides."""
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("denoise_table")
-    lo, hi = dt._request("dss_pix2pix", cfg, 0.003), dt._request("dss_pix2pix", cfg, 0.012)
-    assert lo["model_sha256"] == dt.file_sha256(dt.REPO_ROOT / "experiments/assets/denoiser_noise_0.3pct.onnx")[:16]
-    assert hi["model_sha256"] == dt.file_sha256(dt.REPO_ROOT / "experiments/assets/denoiser_noise_1pct.onnx")[:16]
-    assert "model_sha256" not in dt._request("dss_l0", cfg, 0.01)
-    assert dt.shipped_model_for(["reference=onnx", "reference.model=/x/m.onnx"], 0.01) is None
+    lo, hi = runners.request("dss_pix2pix", cfg, 0.003), runners.request("dss_pix2pix", cfg, 0.012)
+    assert lo["model_sha256"] == runners.file_sha256(cases.REPO_ROOT / "experiments/assets/denoiser_noise_0.3pct.onnx")[:16]
+    assert hi["model_sha256"] == runners.file_sha256(cases.REPO_ROOT / "experiments/assets/denoiser_noise_1pct.onnx")[:16]
+    assert "model_sha256" not in runners.request("dss_l0", cfg, 0.01)
+    assert runners.shipped_model_for(["reference=onnx", "reference.model=/x/m.onnx"], 0.01) is None
 
 
 def test_pareto_front_and_cpu_column_use_cpu_seconds_when_every_method_has_them():
@@ -343,13 +342,13 @@ def test_pareto_front_and_cpu_column_use_cpu_seconds_when_every_method_has_them(
 
     # fast is slower on the (loaded) wall clock but cheaper in CPU: on the front only by CPU
     recs = [rec("a", "slow_good", 0.3, 10.0, 40.0), rec("a", "fast", 0.5, 20.0, 10.0)]
-    rows = dt.summarize(recs, ["slow_good", "fast"], ["a"])
+    rows = report.summarize(recs, ["slow_good", "fast"], ["a"])
     front = {r["method"] for r in rows if r["pareto"]["chamfer"]}
     assert front == {"slow_good", "fast"} and rows[0]["clock"] == "cpu_s"
     info = [{"name": "a", "status": "ready", "key": {"points": 10, "noise": 0.01, "case": {}},
              "source": {"family": "x", "index": 0}}]
-    md = _md_rows(dt.render_markdown(rows, info, "t", []))
+    md = _md_rows(report.render_markdown(rows, info, "t", []))
     assert md["fast"][-1] == "**10**" and md["fast"][-2] == "20"  # time (s), CPU (s)
     recs[1]["cpu_s"] = None  # one method without CPU seconds: wall time decides
-    rows = dt.summarize(recs, ["slow_good", "fast"], ["a"])
+    rows = report.summarize(recs, ["slow_good", "fast"], ["a"])
     assert {r["method"] for r in rows if r["pareto"]["chamfer"]} == {"slow_good"} and rows[0]["clock"] == "time_s"

@@ -139,9 +139,9 @@ def test_render_and_deform_of_a_far_cloud_match_the_cloud_at_the_origin(tmp_path
     import matplotlib.image
     from scenes import sphere_points
 
-    from experiments.apps.deform import load_target
     from experiments.apps.render import run as render_run
     from experiments.common import release_claims
+    from experiments.deformation.inputs import load_target
 
     p, n = sphere_points(800, 0.4)
     p = p.double().numpy()

@@ -12,8 +12,8 @@ from hydra import compose, initialize_config_dir
 
 from data_prep.sampling import poisson_disk
 from data_prep.shapes import make_shape
+from dss.ply import write_ply
 from dss.pointcloud import PointCloud, load_ply, save_ply
-from experiments.apps.make_example import write_ply
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 torch.set_num_threads(1)
@@ -74,8 +74,8 @@ def test_slic_filter_on_noisy_input_with_ground_truth(cloud_file, tmp_path):
 
 
 def test_filter_refusals(cloud_file, tmp_path):
-    from experiments.apps.denoise import OutputExistsError
     from experiments.apps.filter import run
+    from experiments.common import OutputExistsError
 
     target = tmp_path / "taken.ply"
     save_ply(target, PointCloud(torch.arange(12.0).view(4, 3)))

@@ -51,7 +51,7 @@ def _four(path):  # takes 4-channel images (the renders have 3)
     (_four, r"four\.onnx: the model takes 4-channel images, the renders have 3"),
 ])
 def test_a_model_of_the_wrong_shape_is_refused_at_load(make, pattern, tmp_path):
-    from experiments.apps.reference_generators import OnnxReference
+    from experiments.denoising.reference_generators import OnnxReference
     from pix2pix.runtime import DenoiserFormatError
 
     path = make(tmp_path / f"{make.__name__.strip('_')}.onnx")
@@ -61,7 +61,7 @@ def test_a_model_of_the_wrong_shape_is_refused_at_load(make, pattern, tmp_path):
 
 
 def test_the_shipped_models_fit_their_renders():
-    from experiments.apps.reference_generators import OnnxReference, select_model
+    from experiments.denoising.reference_generators import OnnxReference, select_model
 
     for level in (0.003, 0.01):
         ref = OnnxReference(select_model(level)[0])

@@ -75,7 +75,7 @@ def test_parity_on_real_dss_renders(exported):
     from data_prep.shapes import make_shape
     from dss.pointcloud import estimate_normals, normalize_unit_diagonal
     from dss.render import render
-    from experiments.apps.reference_generators import SpecViewSampler
+    from experiments.denoising.reference_generators import SpecViewSampler
 
     g, path = exported
     mesh = make_shape("superquadric", seed=4, resolution=32)

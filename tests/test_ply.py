@@ -54,7 +54,6 @@ def test_the_ply_module_reads_and_writes_what_pointcloud_reexports(tmp_path):
     """dss.ply holds the format; dss.pointcloud keeps exporting the names other code imports."""
     import dss.ply as ply
     from dss import pointcloud
-    from experiments.apps.make_example import write_ply
 
     for name in ("read_ply_header", "read_ply_vertices", "read_ply_triangles", "PlyHeader", "PointCloudError"):
         assert getattr(pointcloud, name) is getattr(ply, name)
@@ -65,9 +64,6 @@ def test_the_ply_module_reads_and_writes_what_pointcloud_reexports(tmp_path):
     assert np.array_equal(vv, v) and np.array_equal(ff, f)  # doubles keep 1e7 + 1 exact
     arrays = ply.read_ply_arrays(path)
     assert arrays.coordinates == "double" and arrays.points.dtype == np.float64
-    # the example writer is the module's: same bytes
-    write_ply(tmp_path / "a.ply", v.astype(np.float32), faces=f)
-    assert (tmp_path / "a.ply").read_bytes() == ply.write_ply(tmp_path / "b.ply", v.astype(np.float32), faces=f).read_bytes()
 
 
 def test_one_bbox_diagonal_refuses_an_empty_point_set():

@@ -105,10 +105,11 @@ def test_ctrl_c_on_denoise_leaves_no_result_looking_complete(noisy_ply, tmp_path
     run's results removed, no lock file beside the output; a rerun into the directory is not
     refused (only the run's config and log remain)."""
     import experiments.apps.denoise as dn
+    from experiments.denoising import job
 
     out = tmp_path / "run"
     output = tmp_path / "elsewhere" / "mine.ply"
-    monkeypatch.setattr(dn, "score", _interrupt)
+    monkeypatch.setattr(job, "score", _interrupt)
     with pytest.raises(SystemExit) as exit_info:
         dn._main(_cfg("denoise", _denoise(noisy_ply, out, f"output={output}")))
     assert exit_info.value.code == 130
@@ -123,9 +124,10 @@ def test_ctrl_c_on_denoise_leaves_no_result_looking_complete(noisy_ply, tmp_path
 
 def test_ctrl_c_on_deform_leaves_no_result_looking_complete(noisy_ply, tmp_path, monkeypatch, capsys):
     import experiments.apps.deform as df
+    from experiments.deformation import outputs
 
     out = tmp_path / "deform"
-    monkeypatch.setattr(df, "_plot_curves", _interrupt)  # after final.ply and the snapshots
+    monkeypatch.setattr(outputs, "plot_curves", _interrupt)  # after final.ply and the snapshots
     cfg = _cfg("deform", [f"target.path={noisy_ply}", "start.points=200", "image_size=32", "optimizer.cycles=1",
                           "optimizer.point_steps=1", "optimizer.normal_steps=1", "snapshot_steps=[0]",
                           "chamfer_every=0", "progress=false", f"+out_dir={out}"])

@@ -13,9 +13,9 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-import experiments.evaluation.denoise_table as dt
 import experiments.evaluation.sweep as sw
 from dss.metrics import load_points
+from experiments.evaluation.table import cases, runners
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 TINY_CASE = {"name": "tiny", "family": "superquadric", "index": 26, "resolution": 32}
@@ -129,8 +129,8 @@ def test_resume_reruns_nothing(sweep, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("a finished record was rerun")
 
-    monkeypatch.setattr(dt, "_run_baseline", boom)
-    monkeypatch.setattr(dt, "_run_dss", boom)
+    monkeypatch.setattr(runners, "run_baseline", boom)
+    monkeypatch.setattr(runners, "run_dss", boom)
     res = sw.run(sweep["cfg"], command="dss-sweep (resume)")
     assert _axis(res, "noise")["stats"][0]["open3d_taubin"]["chamfer"] == pytest.approx(
         _axis(sweep["res"], "noise")["stats"][0]["open3d_taubin"]["chamfer"])
@@ -182,7 +182,7 @@ def test_shipped_studies_compose():
         base = sw.base_table(cfg.study.table, cfg.table)
         pts = sw.axis_points(cfg.study, list(cfg.study.axes), base)
         assert len(pts) == sum(len(a["values"]) for a in cfg.study.axes.values())
-        dt.method_list(pts[0]["table"])  # every method name is known
+        runners.method_list(pts[0]["table"])  # every method name is known
         for p in pts:  # model files named by an axis ship with the repository
             for o in p["table"].dss_overrides:
                 if o.startswith("reference.model="):
@@ -190,9 +190,9 @@ def test_shipped_studies_compose():
 
 
 def test_seed_gives_another_draw_of_a_generated_shape():
-    a = dt._make_case_arrays(TINY_CASE, 300, 0.01, 0)
-    b = dt._make_case_arrays(TINY_CASE, 300, 0.01, 1)
+    a = cases.make_case_arrays(TINY_CASE, 300, 0.01, 0)
+    b = cases.make_case_arrays(TINY_CASE, 300, 0.01, 1)
     assert a[3]["noise_seed"] != b[3]["noise_seed"]
     assert not np.allclose(a[2], b[2])
-    a2 = dt._make_case_arrays(TINY_CASE, 300, 0.01, 0)
+    a2 = cases.make_case_arrays(TINY_CASE, 300, 0.01, 0)
     np.testing.assert_array_equal(a[2], a2[2])

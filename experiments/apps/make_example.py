@@ -27,22 +27,11 @@ import json
 import logging
 from pathlib import Path
 
-import numpy as np
-
 log = logging.getLogger(__name__)
 
 FAMILY, INDEX, DATA_SEED = "superquadric", 26, 0
 RESOLUTION, NUM_POINTS, NOISE, NOISE_LEVEL_INDEX = 96, 20000, 0.01, 1
 OUT = Path(__file__).resolve().parents[1] / "assets" / "example"
-
-
-def write_ply(path: Path, points: np.ndarray, normals: np.ndarray | None = None,
-              faces: np.ndarray | None = None) -> Path:
-    """Binary little-endian PLY with float32 vertices (half the size of open3d's doubles),
-    optional float32 normals and int32 triangles; written atomically (:func:`dss.ply.write_ply`)."""
-    from dss.ply import write_ply as _write
-
-    return _write(path, points, normals, faces=faces)
 
 
 def make_example(out: str | Path = OUT, force: bool = False) -> dict:
@@ -54,6 +43,7 @@ def make_example(out: str | Path = OUT, force: bool = False) -> dict:
     from data_prep.shapes import make_shape
     from data_prep.shards import noise_seed, shape_seed
     from dss.io_utils import atomic_write_text
+    from dss.ply import write_ply
 
     out = Path(out)
     names = ("mesh.ply", "clean.ply", "noisy_1pct.ply", "README.md")

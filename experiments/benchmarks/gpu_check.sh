@@ -2,12 +2,23 @@
 # Everything that needs a CUDA GPU, in one go (a lent GPU machine is held for minutes, not hours):
 # build the CUDA kernels, run the `gpu` tests, read the compiler's resource report, time the
 # kernels and the render step (experiments/benchmarks/bench_gpu.py) and make the paper's runtime table's CUDA
-# column (experiments/benchmarks/runtime_table.py). Run from the repository root on the GPU machine:
+# column (experiments/benchmarks/runtime_table.py); time whole jobs on the GPU (job: dss-denoise at
+# 20K and 100K points; deform: dss-deform's three scenes; train: a short dss-train on pairs rendered
+# on the fly; experiments/benchmarks/gpu_stages.py). Run from the repository root on the GPU machine:
 #
-#     OUT=/tmp/gpu bash experiments/benchmarks/gpu_check.sh            # all stages
+#     OUT=/tmp/gpu bash experiments/benchmarks/gpu_check.sh            # the default stages
 #     OUT=/tmp/gpu bash experiments/benchmarks/gpu_check.sh tests      # one stage: env, tests, ptxas, rates, bench, table,
-#                                                           # memcheck, racecheck (compute-sanitizer)
-#     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/benchmarks/gpu_check.sh env tests bench rates table
+#                                                           # memcheck, racecheck (compute-sanitizer), job, deform, train
+#     DEADLINE_S=540 OUT=/tmp/gpu bash experiments/benchmarks/gpu_check.sh env tests job deform train bench
+#     TOY=1 DEVICE=cpu OUT=/tmp/t bash experiments/benchmarks/gpu_check.sh job deform train   # the CPU test's toy size
+#
+# job, deform and train run the Hydra apps: they need hydra-core, omegaconf and
+# antlr4-python3-runtime (carry their wheels to a GPU machine that lacks them), deform the
+# targets in $DSS_DATA (default ../shared/data) and train a dss-prep output=clouds dataset in
+# $DSS_TRAIN_CLOUDS (made with open3d on a CPU machine; docs/development.md "GPU check").
+# DEVICE (default cuda) is where they run; TOY=1 shrinks them to seconds; TRAIN_S (default 60) is
+# the training time. Each gets its stage limit as STAGE_DEADLINE_S (5 s less), stops starting
+# runs when its share of it is spent and still writes its JSON.
 #
 # DEADLINE_S: seconds for all the stages together (a lent machine runs one command for at most
 # 10 minutes). Each stage's own limit is cut to what is left of it, less 15 s for the outputs to
@@ -30,6 +41,9 @@ export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/dss_torch_extensions}
 export MAX_JOBS=${MAX_JOBS:-$(nproc)}
 PY=${PYTHON:-python3}
 STAGES=${*:-env tests ptxas rates bench table}
+DEVICE=${DEVICE:-cuda}
+TOY_ARG=()
+[ "${TOY:-0}" = 1 ] && TOY_ARG=(--toy)
 DEADLINE_S=${DEADLINE_S:-}
 started=$(date +%s)
 failed=0
@@ -47,7 +61,7 @@ stage() {  # stage NAME SECONDS CMD...: run with a time limit, log to $OUT/NAME.
     [ "$left" -lt "$limit" ] && limit=$left
   fi
   echo "=== $name ($(date -u +%H:%M:%S), at most ${limit} s)"
-  timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
+  STAGE_DEADLINE_S=$((limit - 5)) timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
   local rc=$?
   if [ $rc -ne 0 ]; then
     echo "!!! $name failed (exit $rc)"
@@ -93,8 +107,19 @@ for s in $STAGES; do
     stage table 420 "$PY" -m experiments.benchmarks.runtime_table --backends cuda --no-progress --out "$OUT/runtime_table_cuda" \
       ${rates_arg[@]+"${rates_arg[@]}"}
     ;;
+  job)  # dss-denoise on the example (20K) and on 100K samples of its mesh: whole-job wall time, per-stage profile
+    stage job 120 "$PY" -m experiments.benchmarks.gpu_stages job --device "$DEVICE" --out "$OUT/job" ${TOY_ARG[@]+"${TOY_ARG[@]}"}
+    ;;
+  deform)  # dss-deform sphere_teapot, sphere_bunny, cube_yoga (default preset): accuracy and time
+    stage deform 100 "$PY" -m experiments.benchmarks.gpu_stages deform --device "$DEVICE" --out "$OUT/deform" \
+      ${TOY_ARG[@]+"${TOY_ARG[@]}"}
+    ;;
+  train)  # a small planes model on pairs rendered on the fly: metrics.json and denoiser.onnx
+    stage train 100 "$PY" -m experiments.benchmarks.gpu_stages train --device "$DEVICE" --seconds "${TRAIN_S:-60}" \
+      --out "$OUT/train" ${TOY_ARG[@]+"${TOY_ARG[@]}"}
+    ;;
   *)
-    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck)"
+    echo "unknown stage $s (env, tests, ptxas, rates, bench, table, memcheck, racecheck, job, deform, train)"
     failed=$((failed + 1))
     ;;
   esac

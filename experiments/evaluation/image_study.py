@@ -61,105 +61,105 @@ def _normal_err(points, normals, mesh, sel=None) -> float | None:
     return normal_error_deg(points.numpy(), normals.numpy(), mesh)["mean"]
 
 
+class _Recorder:
+    """The optimiser's and the fusion's callbacks: per DSS cycle and per fusion pass, what the
+    image reaches and how far the result is from the ground truth (input units)."""
+
+    def __init__(self, reference: str, cloud, clean, mesh, spec, shading, ocfg):
+        self.reference, self.cloud, self.clean, self.mesh = reference, cloud, clean, mesh
+        self.spec, self.shading, self.settings, self.ocfg = spec, shading, spec.render_settings(), ocfg
+        self.per_cycle = ocfg.normal_steps + ocfg.point_steps
+        self.center = self.scale = self.seen = self.ever = None
+        self.cycles: list[dict] = []
+        self.passes: list[dict] = []
+        self.t0 = time.perf_counter()
+
+    def to_input(self, p):
+        return p.detach().cpu() * self.scale + self.center
+
+    def cycle(self, step, st):
+        from dss.metrics import evaluate
+        from dss.pointcloud import estimate_normals, normalize_unit_diagonal
+
+        p, n = st["points"].detach().cpu(), st["normals"].detach().cpu()
+        if self.scale is None:  # the optimiser works in the normalised frame of the inliers
+            _, self.center, self.scale = normalize_unit_diagonal(self.cloud.points)
+        if step % self.per_cycle == 1 or self.per_cycle == 1:  # first step of a cycle: who does the image reach
+            self.seen = _seen(p, n, st["cameras"].to("cpu"), self.settings, self.shading, self.spec.backend)
+            self.ever = self.seen if self.ever is None else self.ever | self.seen
+        if step % self.per_cycle:
+            return
+        pi, seen, mesh = self.to_input(p), self.seen, self.mesh  # end of the cycle
+        m = evaluate(pi.numpy(), self.clean)
+        refit = estimate_normals(p, k=int(self.ocfg.normal_refresh_k), orient="none")
+        self.cycles.append({"cycle": int(st["cycle"]), "step": int(step), "chamfer": m.chamfer, "hausdorff": m.hausdorff,
+                            "seen_fraction": float(seen.float().mean()), "seen_ever": float(self.ever.float().mean()),
+                            "normal_error_seen": _normal_err(pi, n, mesh, seen),
+                            "normal_error_hidden": _normal_err(pi, n, mesh, ~seen),
+                            "normal_error_refit": _normal_err(pi, refit, mesh), "time_s": time.perf_counter() - self.t0})
+        c = self.cycles[-1]
+        log.info("%s cycle %d: Chamfer %.4f, seen %.0f%% (ever %.0f%%), normals seen %.1f / hidden %s / refit %.1f",
+                 self.reference, st["cycle"], m.chamfer, 100 * c["seen_fraction"], 100 * c["seen_ever"],
+                 c["normal_error_seen"] or float("nan"), c["normal_error_hidden"], c["normal_error_refit"])
+
+    def fusion_pass(self, k, st):
+        from dss.metrics import evaluate
+
+        pi, mesh = self.to_input(st["points"]), self.mesh
+        m = evaluate(pi.numpy(), self.clean)
+        img_n, pca = st["image_normals"].detach().cpu(), st["normals"].detach().cpu()
+        has = img_n.norm(dim=1) > 0.5
+        trusted = has & (st["consistency"].detach().cpu() >= 0.5)
+        self.passes.append({"pass": int(k), "chamfer": m.chamfer, "hausdorff": m.hausdorff, "observed": st["observed"],
+                            "consistency_mean": st["consistency_mean"], "move_mean": st["move_mean"],
+                            "spread_median": st["spread_median"], "normal_error_pca": _normal_err(pi, pca, mesh),
+                            "normal_error_image": _normal_err(pi, img_n, mesh, has),
+                            "normal_error_pca_where_image": _normal_err(pi, pca, mesh, has),
+                            "trusted_fraction": float(trusted.float().mean()),
+                            "normal_error_image_trusted": _normal_err(pi, img_n, mesh, trusted),
+                            "normal_error_pca_trusted": _normal_err(pi, pca, mesh, trusted),
+                            "time_s": time.perf_counter() - self.t0})
+        f = self.passes[-1]
+        log.info("%s fusion pass %d: Chamfer %.4f, consistency %.2f, normals image %.1f vs PCA %.1f (where seen)",
+                 self.reference, k, m.chamfer, st["consistency_mean"], f["normal_error_image"] or float("nan"),
+                 f["normal_error_pca_where_image"] or float("nan"))
+
+
 def study_reference(base: list[str], reference: str, out: Path) -> dict:
     """One dss-denoise job with ``reference``, instrumented; returns its records."""
     from dss.metrics import evaluate
-    from dss.pipeline import estimate_noise_level
-    from dss.pointcloud import estimate_normals
-    from experiments.apps import denoise as dn
+    from experiments.common import resolve_device
+    from experiments.denoising import inputs, job, settings
+    from experiments.denoising.references import make_reference
+    from experiments.denoising.refine import normals_mode, output_normals, refine
 
     cfg = _compose([*base, f"reference={reference}"])
-    input_path, clean_path, mesh_path, _ = dn._example_defaults(cfg)
-    cloud, report = dn.load_input(input_path, cfg.get("nan_policy", "drop"), int(cfg.normals.k),
-                                  bool(cfg.normals.recompute))
-    cloud, _, _ = dn.remove_outliers(cloud, cfg.get("outliers", {}),
-                                     None if report["normals"] == "from file" else int(cfg.normals.k))
-    noise = float(cfg.noise) if cfg.get("noise") is not None else estimate_noise_level(cloud.points)
-    generator, _ = dn.make_reference(cfg, noise)
-    dn.resolve_all_by_noise(cfg, noise, len(cloud))
-    budget = dn.resolve_budget(cfg, len(cloud), None)
-    spec, _, shading, shading_name = dn.resolve_channel(cfg, generator, budget)
-    clean, mesh, _ = dn.load_ground_truth(clean_path, mesh_path, len(cloud), int(cfg.seed), cloud.offset)
+    files = inputs.input_files(cfg)
+    cloud, report = job.load(cfg, files)
+    cloud, _, _ = job.drop_outliers(cfg, cloud, report)
+    noise = inputs.noise_level(cloud.points, inputs.noise_hint(cfg.get("noise")), files.input).used
+    generator, _ = make_reference(cfg, noise)
+    s = settings.resolve(cfg, noise, len(cloud), generator)
+    clean, mesh, _ = inputs.load_ground_truth(files.clean, files.mesh, len(cloud), int(cfg.seed), cloud.offset)
     if mesh is None or clean is None:
         raise SystemExit("image_study needs ground truth: --clean and --mesh (the shipped example has both)")
-    settings = spec.render_settings()
-    ocfg = dn.optimizer_config(cfg.optimizer, cfg.views, cfg.seed)
-    per_cycle = ocfg.normal_steps + ocfg.point_steps
-    state = {"center": None, "scale": None, "ever": None}
-    cycles: list[dict] = []
-    passes: list[dict] = []
-    t0 = time.perf_counter()
-
-    def to_input(p):
-        return p.detach().cpu() * state["scale"] + state["center"]
-
-    def callback(step, st):
-        p, n = st["points"].detach().cpu(), st["normals"].detach().cpu()
-        if state["scale"] is None:  # the optimiser works in the normalised frame of the inliers
-            from dss.pointcloud import normalize_unit_diagonal
-
-            _, c, s = normalize_unit_diagonal(cloud.points)
-            state["center"], state["scale"] = c, s
-        if step % per_cycle == 1 or per_cycle == 1:  # first step of a cycle: who does the image reach
-            seen = _seen(p, n, st["cameras"].to("cpu"), settings, shading, spec.backend)
-            state["seen"] = seen
-            state["ever"] = seen if state["ever"] is None else state["ever"] | seen
-        if step % per_cycle == 0:  # end of the cycle
-            pi = to_input(p)
-            m = evaluate(pi.numpy(), clean)
-            seen = state["seen"]
-            refit = estimate_normals(p, k=int(ocfg.normal_refresh_k), orient="none")
-            cycles.append({"cycle": int(st["cycle"]), "step": int(step), "chamfer": m.chamfer, "hausdorff": m.hausdorff,
-                           "seen_fraction": float(seen.float().mean()), "seen_ever": float(state["ever"].float().mean()),
-                           "normal_error_seen": _normal_err(pi, n, mesh, seen),
-                           "normal_error_hidden": _normal_err(pi, n, mesh, ~seen),
-                           "normal_error_refit": _normal_err(pi, refit, mesh), "time_s": time.perf_counter() - t0})
-            log.info("%s cycle %d: Chamfer %.4f, seen %.0f%% (ever %.0f%%), normals seen %.1f / hidden %s / refit %.1f",
-                     reference, st["cycle"], m.chamfer, 100 * cycles[-1]["seen_fraction"], 100 * cycles[-1]["seen_ever"],
-                     cycles[-1]["normal_error_seen"] or float("nan"), cycles[-1]["normal_error_hidden"],
-                     cycles[-1]["normal_error_refit"])
-
-    def fusion_callback(k, st):
-        p = st["points"].detach().cpu()
-        pi = to_input(p)
-        m = evaluate(pi.numpy(), clean)
-        img_n = st["image_normals"].detach().cpu()
-        has = img_n.norm(dim=1) > 0.5
-        cons = st["consistency"].detach().cpu()
-        trusted = has & (cons >= 0.5)
-        passes.append({"pass": int(k), "chamfer": m.chamfer, "hausdorff": m.hausdorff, "observed": st["observed"],
-                       "consistency_mean": st["consistency_mean"], "move_mean": st["move_mean"],
-                       "spread_median": st["spread_median"],
-                       "normal_error_pca": _normal_err(pi, st["normals"].detach().cpu(), mesh),
-                       "normal_error_image": _normal_err(pi, img_n, mesh, has),
-                       "normal_error_pca_where_image": _normal_err(pi, st["normals"].detach().cpu(), mesh, has),
-                       "trusted_fraction": float(trusted.float().mean()),
-                       "normal_error_image_trusted": _normal_err(pi, img_n, mesh, trusted),
-                       "normal_error_pca_trusted": _normal_err(pi, st["normals"].detach().cpu(), mesh, trusted),
-                       "time_s": time.perf_counter() - t0})
-        log.info("%s fusion pass %d: Chamfer %.4f, consistency %.2f, normals image %.1f vs PCA %.1f (where seen)",
-                 reference, k, m.chamfer, st["consistency_mean"], passes[-1]["normal_error_image"] or float("nan"),
-                 passes[-1]["normal_error_pca_where_image"] or float("nan"))
-
-    pts, nrm, history, _, _, _ = dn.run_refinement(cfg, cloud.points, cloud.normals, generator, spec,
-                                                    f"image study ({reference})", shading=shading, noise=noise,
-                                                    clean=clean, mesh=mesh, callback=callback,
-                                                    fusion_callback=fusion_callback)
-    mode = str(cfg.normals.get("output", "auto"))
-    if mode == "auto":
-        mode = "optimized" if "fusion" in history else "pca"
-    written = dn.output_normals(pts, nrm, mode, int(cfg.normals.k))
-    m = evaluate(pts.numpy(), clean)
-    m_in = evaluate(cloud.points.numpy(), clean)
+    rec = _Recorder(reference, cloud, clean, mesh, s.spec, s.shading, s.optimizer)
+    refined = refine(cloud.points, cloud.normals, generator, s.spec, s.optimizer, shading=s.shading, fusion=s.fusion,
+                     noise=noise, device=resolve_device(cfg.get("device")), progress=bool(cfg.get("progress", True)),
+                     desc=f"image study ({reference})", clean=clean, mesh=mesh, callback=rec.cycle,
+                     fusion_callback=rec.fusion_pass)
+    pts, nrm, k = refined.points, refined.normals, int(cfg.normals.k)
+    mode = normals_mode(cfg.normals.get("output", "auto"), refined.history)
+    m, m_in = evaluate(pts.numpy(), clean), evaluate(cloud.points.numpy(), clean)
     final = {"chamfer": m.chamfer, "hausdorff": m.hausdorff, "chamfer_input": m_in.chamfer,
-             "normal_error_written": _normal_err(pts, written, mesh),
-             "normal_error_pca": _normal_err(pts, dn.output_normals(pts, nrm, "pca", int(cfg.normals.k)), mesh),
+             "normal_error_written": _normal_err(pts, output_normals(pts, nrm, mode, k), mesh),
+             "normal_error_pca": _normal_err(pts, output_normals(pts, nrm, "pca", k), mesh),
              "normal_error_input": _normal_err(cloud.points, cloud.normals, mesh),
-             "normals_output": mode, "time_s": time.perf_counter() - t0}
+             "normals_output": mode, "time_s": time.perf_counter() - rec.t0}
     log.info("%s: Chamfer %.4f -> %.4f, Hausdorff %.2f, written normals %.1f deg", reference, m_in.chamfer, m.chamfer,
              m.hausdorff, final["normal_error_written"])
-    return {"reference": reference, "channel": shading_name, "image_size": list(spec.image_size), "noise": noise,
-            "cycles": cycles, "fusion": passes, "final": final, "fusion_summary": history.get("fusion")}
+    return {"reference": reference, "channel": s.shading_name, "image_size": list(s.spec.image_size), "noise": noise,
+            "cycles": rec.cycles, "fusion": rec.passes, "final": final, "fusion_summary": refined.history.get("fusion")}
 
 
 def plot(res: dict, path: Path) -> Path:

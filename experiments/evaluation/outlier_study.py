@@ -6,7 +6,7 @@ and what it costs a cloud without them.
     python -m experiments.evaluation.outlier_study --shapes 3 --out /tmp/o.json   # quicker
 
 Cases: dss-denoise-table's (kangaroo and the first ``--shapes`` generated test shapes), made by
-its case generator (``_make_case_arrays``: Poisson-disk samples, Gaussian noise, outliers uniform
+its case generator (``experiments.evaluation.table.cases.make_case_arrays``: Poisson-disk samples, Gaussian noise, outliers uniform
 in the clean cloud's bounding box). Settings: points / noise / outlier fraction as in the
 stability sweep's outlier axis and the paper tables. Per case and setting: outliers found, the
 outliers kept that lie more than 3 noise sigmas (at least 0.3% of the diagonal) off the clean
@@ -44,10 +44,10 @@ def study_case(case: dict, points: int, noise: float, outliers: float, params: d
     from dss.knn import knn
     from dss.metrics import evaluate
     from dss.pointcloud import find_outliers
-    from experiments.evaluation.denoise_table import _make_case_arrays
+    from experiments.evaluation.table.cases import make_case_arrays
 
-    _, clean, noisy, _ = _make_case_arrays(case, points, noise, 0, outliers)
-    is_out = _true_outliers(noisy, _make_case_arrays(case, points, noise, 0, 0.0)[2]) if outliers else \
+    _, clean, noisy, _ = make_case_arrays(case, points, noise, 0, outliers)
+    is_out = _true_outliers(noisy, make_case_arrays(case, points, noise, 0, 0.0)[2]) if outliers else \
         np.zeros(len(noisy), bool)
     t0 = time.perf_counter()
     flagged = find_outliers(torch.from_numpy(noisy), **params).numpy()
@@ -126,8 +126,8 @@ def main(argv=None) -> int:
     from omegaconf import OmegaConf
 
     from dss.io_utils import atomic_write_json, atomic_write_text
-    from experiments.apps.denoise import outlier_params
-    from experiments.evaluation.denoise_table import case_list
+    from experiments.denoising.inputs import outlier_params
+    from experiments.evaluation.table.cases import case_list
     from experiments.figures import command_line
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -9,7 +9,7 @@ Cases: every mesh of ``groups`` (``data_prep/real_split.yaml``: ``tuning``, ``he
 ``open``; installed by ``dss-data real``), at each of ``points`` x ``noise`` x ``seeds``:
 Poisson-disk samples of the mesh (the clean cloud) plus Gaussian noise of std ``noise`` x the
 bbox diagonal per axis (the noisy input), made and cached as ``dss-denoise-table`` makes them
-(:func:`experiments.evaluation.denoise_table.prepare_case`). Meshes that are not installed or not
+(:func:`experiments.evaluation.table.cases.prepare_case`). Meshes that are not installed or not
 usable are listed with their reason, never dropped from a mean silently.
 
 Methods: the DSS variants of ``dss_methods`` (dss-denoise subprocesses; with ``dss_noise:
@@ -45,21 +45,21 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from experiments.evaluation.denoise_table import (
-    REPO_ROOT,
-    _fmt,
-    _label_points,
-    _load_gt,
-    _plain,
-    _read_json,
-    _reference_record,
-    _reusable,
-    _run_baseline,
-    _run_dss,
-    _safe,
-    _versions,
+from experiments.evaluation.table.cases import (
+    load_case,
+    plain,
     prepare_case,
     resolve_repo_path,
+    safe_name,
+)
+from experiments.evaluation.table.report import fmt, label_points
+from experiments.evaluation.table.runners import (
+    read_json,
+    reference_record,
+    reusable,
+    run_baseline,
+    run_dss,
+    versions,
 )
 
 log = logging.getLogger(__name__)
@@ -109,7 +109,7 @@ def bench_cases(cfg: DictConfig) -> tuple[list[dict], list[dict]]:
 
 
 def _case_id(name: str, points: int, noise: float, seed: int) -> str:
-    return _safe(f"{name}_{points // 1000}k_n{noise:g}_s{seed}")
+    return safe_name(f"{name}_{points // 1000}k_n{noise:g}_s{seed}")
 
 
 def _read_normals(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -134,14 +134,14 @@ def _extra_metrics(pts: np.ndarray, normals: np.ndarray | None, gt: dict) -> dic
 
 def _dss_cpu(run_dir: Path) -> float | None:
     """CPU seconds of a dss-denoise run's own work (its profile without ground truth and figures)."""
-    m = _read_json(run_dir / "metrics.json") or {}
+    m = read_json(run_dir / "metrics.json") or {}
     prof = m.get("profile_cpu_s") or {}
     vals = [v for k, v in prof.items() if k not in NOT_THE_METHOD and isinstance(v, (int, float))]
     return float(sum(vals)) if vals else None
 
 
 def _dss_noise(run_dir: Path) -> dict:
-    m = _read_json(run_dir / "metrics.json") or {}
+    m = read_json(run_dir / "metrics.json") or {}
     return m.get("noise") or {}
 
 
@@ -161,7 +161,7 @@ def _run_case(cfg: DictConfig, out: Path, case: dict, points: int, noise: float,
         for f in rdir.glob("*.json"):
             f.unlink()
     rdir.mkdir(parents=True, exist_ok=True)
-    gt = _load_gt(cdir)
+    gt = load_case(cdir)
     gt["protocol"] = "paper"
     from dss.pointcloud import load_ply
 
@@ -170,34 +170,34 @@ def _run_case(cfg: DictConfig, out: Path, case: dict, points: int, noise: float,
     overwrite = bool(cfg.get("overwrite", False))
     records = []
     ipath = rdir / "input.json"
-    rec = None if overwrite else _read_json(ipath)
+    rec = None if overwrite else read_json(ipath)
     if rec is None:
-        rec = _reference_record("input", cid, gt["noisy"], gt)
+        rec = reference_record("input", cid, gt["noisy"], gt)
         rec["metrics"].update(_extra_metrics(gt["noisy"], None, gt))
         atomic_write_json(ipath, rec)
     records.append({**rec, **info, "method": "input"})
     gt["input_chamfer"] = rec["metrics"]["chamfer"]
     given = str(cfg.get("dss_noise", "estimate")) == "given"
     for label, req, kind in _requests(cfg, seed, given):
-        path = rdir / f"{_safe(label)}.json"
+        path = rdir / f"{safe_name(label)}.json"
         limit = float(cfg.time_limit_s)
-        old = None if overwrite else _read_json(path)
-        if _reusable(old, req, limit) and old.get("status") != "crash":  # a crash is retried
+        old = None if overwrite else read_json(path)
+        if reusable(old, req, limit) and old.get("status") != "crash":  # a crash is retried
             records.append({**old, **info, "method": label})
             bar.update(1)
             continue
         bar.set_description(f"{cid}: {label}")
-        out_ply = out / "outputs" / cid / f"{_safe(label)}.ply"
+        out_ply = out / "outputs" / cid / f"{safe_name(label)}.ply"
         if kind == "dss":
-            run_dir = out / "runs" / cid / _safe(label)
-            rec = _run_dss(req["overrides"], cdir, gt, noise, limit, threads, run_dir, None)
+            run_dir = out / "runs" / cid / safe_name(label)
+            rec = run_dss(req["overrides"], cdir, gt, noise, limit, threads, run_dir, None)
             if rec.get("metrics"):
                 pts, nrm = _read_normals(run_dir / "denoised.ply")
                 rec["metrics"].update(_extra_metrics(pts, nrm, gt))
                 rec["cpu_s"] = _dss_cpu(run_dir)
                 rec["noise_used"] = _dss_noise(run_dir)
         else:
-            rec = _run_baseline(req["spec"], gt, req["params"], limit, threads, out_ply)
+            rec = run_baseline(req["spec"], gt, req["params"], limit, threads, out_ply)
             if rec.get("metrics"):
                 pts, _ = _read_normals(out_ply)
                 rec["metrics"].update(_extra_metrics(pts, None, gt))
@@ -218,13 +218,13 @@ def _requests(cfg: DictConfig, seed: int, given: bool) -> list[tuple[str, dict, 
     """(label, request, kind) per method: what determines a stored record besides its case."""
     out = []
     for label, ovr in (cfg.dss_methods or {}).items():
-        # _run_dss passes the case's level as noise=...; a later noise=null (estimate) overrides it
-        o = [*_plain(ovr), *_plain(cfg.get("dss_overrides")), *([] if given else ["noise=null"])]
+        # run_dss passes the case's level as noise=...; a later noise=null (estimate) overrides it
+        o = [*plain(ovr), *plain(cfg.get("dss_overrides")), *([] if given else ["noise=null"])]
         if seed:
             o.append(f"seed={seed}")
         out.append((str(label), {"kind": "dss", "overrides": [str(x) for x in o]}, "dss"))
     for label, node in (cfg.classical or {}).items():
-        out.append((str(label), {"kind": "baseline", "spec": str(node.method), "params": dict(_plain(node.params))},
+        out.append((str(label), {"kind": "baseline", "spec": str(node.method), "params": dict(plain(node.params))},
                     "baseline"))
     return out
 
@@ -257,7 +257,7 @@ def summarize_bench(records: list[dict], cfg: DictConfig) -> dict:
         ms = c["methods"]
         row = {"shape": inf["shape"], "seed": inf["seed"], "values": {}, "cpu_s": {}}
 
-        def metrics_of(label):
+        def metrics_of(label, ms=ms):  # this case's records
             r = ms.get(label)
             return (r or {}).get("metrics") if r and r.get("status") in ("ok", "worse_than_input", "reference") else None
 
@@ -328,14 +328,14 @@ def render_report(summary: dict, title: str, notes: list[str], skipped: list[dic
         default = dss[0] if dss else None
         cells = [f"{lv['points']}", f"{100 * lv['noise']:g}% ({100 * lv['noise'] * PAPER_LABEL_FACTOR:g}%)",
                  lv["group"], str(lv["n"]) + (f" ({len(lv['missing'])} missing)" if lv["missing"] else ""),
-                 f"{_fmt(m['input']['chamfer'])} / {_fmt(m['input']['hausdorff'])}",
-                 f"{_fmt(m['best_classical']['chamfer'])} / {_fmt(m['best_classical']['hausdorff'])}"]
-        cells += [f"{_fmt(m[d]['chamfer'])} / {_fmt(m[d]['hausdorff'])}" for d in dss]
+                 f"{fmt(m['input']['chamfer'])} / {fmt(m['input']['hausdorff'])}",
+                 f"{fmt(m['best_classical']['chamfer'])} / {fmt(m['best_classical']['hausdorff'])}"]
+        cells += [f"{fmt(m[d]['chamfer'])} / {fmt(m[d]['hausdorff'])}" for d in dss]
         if default:
             cells += [_ratio(m[default]["chamfer"], m["best_classical"]["chamfer"]),
                       _ratio(m[default]["hausdorff"], m["best_classical"]["hausdorff"]),
-                      f"{lv['hd_above_input'][default]}/{lv['n']}", _fmt(lv["cpu_s"].get(default)),
-                      f"{_fmt(m[default]['normal_error_all_deg'])} / {_fmt(m['best_classical']['normal_error_all_deg'])}"]
+                      f"{lv['hd_above_input'][default]}/{lv['n']}", fmt(lv["cpu_s"].get(default)),
+                      f"{fmt(m[default]['normal_error_all_deg'])} / {fmt(m['best_classical']['normal_error_all_deg'])}"]
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "## Detail and coverage (means)", "",
               "HD clean->out: the largest distance from a clean point to the output (uncovered folds and crevices); "
@@ -347,8 +347,8 @@ def render_report(summary: dict, title: str, notes: list[str], skipped: list[dic
         for lab in ["input", "best_classical", *dss]:
             v = lv["mean"][lab]
             lines.append(f"| {lv['points']} | {100 * lv['noise']:g}% | {lv['group']} | {lab} | "
-                         f"{_fmt(v['hausdorff_gt_to_pred'])} | {_fmt(v['gt_to_pred_p99'])} | "
-                         f"{_fmt(v['normal_error_all_deg'])} | {_fmt(v['normal_error_curved_deg'])} |")
+                         f"{fmt(v['hausdorff_gt_to_pred'])} | {fmt(v['gt_to_pred_p99'])} | "
+                         f"{fmt(v['normal_error_all_deg'])} | {fmt(v['normal_error_curved_deg'])} |")
     lines += ["", "## Which classical entry was best (CD), and each entry's mean", ""]
     for lv in summary["levels"]:
         best = ", ".join(f"{k} {n}" for k, n in lv["best_classical_method"].items())
@@ -359,12 +359,12 @@ def render_report(summary: dict, title: str, notes: list[str], skipped: list[dic
                   "| shape | seed | input CD / HD | best classical CD / HD (entry) | "
                   + " | ".join(f"{d} CD / HD" for d in dss) + " | default noise estimate |",
                   "|" + "---|" * (5 + len(dss))]
-        for cid, r in lv["cases"].items():
+        for r in lv["cases"].values():
             v = r["values"]
-            cells = [r["shape"], str(r["seed"]), f"{_fmt(v['input']['chamfer'])} / {_fmt(v['input']['hausdorff'])}",
-                     f"{_fmt(v['best_classical'].get('chamfer'))} / {_fmt(v['best_classical'].get('hausdorff'))} "
+            cells = [r["shape"], str(r["seed"]), f"{fmt(v['input']['chamfer'])} / {fmt(v['input']['hausdorff'])}",
+                     f"{fmt(v['best_classical'].get('chamfer'))} / {fmt(v['best_classical'].get('hausdorff'))} "
                      f"({r['best_classical_method'].get('chamfer')}, {r['best_classical_method'].get('hausdorff')})"]
-            cells += [f"{_fmt(v[d]['chamfer'])} / {_fmt(v[d]['hausdorff'])}" for d in dss]
+            cells += [f"{fmt(v[d]['chamfer'])} / {fmt(v[d]['hausdorff'])}" for d in dss]
             est = (r.get("noise_used") or {}).get(dss[0]) if dss else None
             cells.append("-" if est is None else f"{100 * est:.3g}%")
             lines.append("| " + " | ".join(cells) + " |")
@@ -402,7 +402,7 @@ def plot_level(lv: dict, dss: list[str], classical: list[str], path: Path, title
             if v is not None:
                 ax.axhline(v, color="0.4", ls=style, lw=1, label=f"{lab.replace('_', ' ')} per case ({v:.3g})")
         ax.set_xscale("log")
-        _label_points(ax, items, fontsize=6.5)
+        label_points(ax, items, fontsize=6.5)
         ax.set_xlabel("mean CPU seconds per case (one thread)")
         ax.set_ylabel(f"mean {NAMES[k]} ({'x1e4' if k == 'chamfer' else 'x1e3'}, paper protocol)")
         ax.grid(alpha=0.3)
@@ -415,15 +415,11 @@ def plot_level(lv: dict, dss: list[str], classical: list[str], path: Path, title
 
 
 # ------------------------------------------------------------------------------ the app
-def run(cfg: DictConfig, command: str | None = None) -> dict:
-    """Run the benchmark (see the module docstring); returns ``{"out_dir", "records", "summary",
-    "markdown", "files", "skipped", "time_s", "published"}``."""
-    from tqdm.auto import tqdm
+def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
+    """(points, noise levels, seeds), every setting checked before any work (the classical
+    entries' methods and parameters too)."""
+    from experiments.evaluation.baselines.methods import METHODS
 
-    from dss.io_utils import atomic_write_json, atomic_write_text
-    from experiments.common import save_config
-
-    t0 = time.perf_counter()
     points = [int(p) for p in cfg.points]
     noises = [float(n) for n in cfg.noise]
     seeds = [int(s) for s in cfg.seeds]
@@ -431,45 +427,35 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         raise ValueError(f"points must be >= 32 and noise levels positive, got {points}, {noises}")
     if str(cfg.get("dss_noise", "estimate")) not in ("estimate", "given"):
         raise ValueError(f"dss_noise must be estimate or given, got {cfg.dss_noise!r}")
-    from experiments.evaluation.baselines.methods import METHODS
-
     for label, node in (cfg.classical or {}).items():
         if str(node.method) not in METHODS:
             raise ValueError(f"classical.{label}: unknown method {node.method!r}; known: {sorted(METHODS)}")
-        bad = sorted(set(_plain(node.params) or {}) - set(METHODS[str(node.method)].defaults))
+        bad = sorted(set(plain(node.params) or {}) - set(METHODS[str(node.method)].defaults))
         if bad:
             raise ValueError(f"classical.{label}: unknown parameter(s) {bad} of {node.method}")
-    shapes, skipped = bench_cases(cfg)
-    if not shapes:
-        raise ValueError("no real shapes to run: " + ("; ".join(f"{s['name']}: {s['reason']}" for s in skipped)
-                                                       or f"groups {list(cfg.groups)} are empty"))
-    out = Path(os.path.expanduser(str(cfg.out_dir))).absolute()
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out)
-    n_methods = len(cfg.dss_methods or {}) + len(cfg.classical or {})
-    bar = tqdm(total=len(shapes) * len(points) * len(noises) * len(seeds) * n_methods, desc="real bench",
-               unit="run", disable=not cfg.get("progress", True), dynamic_ncols=True)
-    records = []
-    # cheap levels first: every case of one (points, noise, seed) before the next seed
-    for p in points:
-        for n in noises:
-            for s in seeds:
-                for case in shapes:
-                    records += _run_case(cfg, out, case, p, n, s, bar)
-    bar.close()
-    summary = summarize_bench(records, cfg)
+    return points, noises, seeds
+
+
+def _title_and_notes(cfg: DictConfig, shapes: list[dict], points, noises, seeds) -> tuple[str, list[str]]:
     title = f"Real shapes: {', '.join(map(str, points))} points, noise {', '.join(f'{100 * n:g}%' for n in noises)} " \
             f"x bbox diagonal, seeds {seeds}"
     notes = [f"shapes: {', '.join(sorted({c['name'] for c in shapes}))} (groups {list(cfg.groups)}, "
              "data_prep/real_split.yaml; held_out and open were not looked at while tuning)",
              f"DSS: dss-denoise with {'the noise estimated' if str(cfg.dss_noise) == 'estimate' else 'the noise given'}; "
-             f"methods {dict((k, _plain(v)) for k, v in (cfg.dss_methods or {}).items())}; extra overrides "
-             f"{_plain(cfg.get('dss_overrides'))}",
-             f"classical entries: {', '.join(f'{k} ({v.method} {dict(_plain(v.params))})' for k, v in (cfg.classical or {}).items())}",
+             f"methods {dict((k, plain(v)) for k, v in (cfg.dss_methods or {}).items())}; extra overrides "
+             f"{plain(cfg.get('dss_overrides'))}",
+             f"classical entries: {', '.join(f'{k} ({v.method} {dict(plain(v.params))})' for k, v in (cfg.classical or {}).items())}",
              f"noise levels in the paper's labels: x{PAPER_LABEL_FACTOR:g} (the paper's test data labelled 1% "
              "measures about 0.5% of the diagonal per axis)",
              f"threads per method: {cfg.threads}; machine: {os.cpu_count()} CPU cores"]
-    md = render_report(summary, title, notes, skipped)
+    return title, notes
+
+
+def _write(cfg: DictConfig, out: Path, title: str, md: str, summary: dict, skipped: list, records: list,
+           command: str | None, t0: float) -> dict:
+    """The charts, report.json, report.md, README.md (and the published copies); the run's result."""
+    from dss.io_utils import atomic_write_json, atomic_write_text
+
     files = {"markdown": "report.md", "json": "report.json", "readme": "README.md", "config": "config.yaml"}
     for lv in summary["levels"]:
         name = f"accuracy_vs_time_{lv['points']}_{lv['noise']:g}_{lv['group']}.png"
@@ -478,7 +464,7 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
                        f"{lv['points']} points, noise {100 * lv['noise']:g}%, {lv['group']} (n={lv['n']})")
             files[name] = name
     elapsed = time.perf_counter() - t0
-    result = {"title": title, "summary": summary, "skipped": skipped, "records": records, "versions": _versions(),
+    result = {"title": title, "summary": summary, "skipped": skipped, "records": records, "versions": versions(),
               "config": OmegaConf.to_container(cfg, resolve=True), "time_s": elapsed, "files": files,
               "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
     atomic_write_json(out / "report.json", result)
@@ -498,6 +484,39 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
                                                              list(files.values()))]
     return {"out_dir": str(out), "records": records, "summary": summary, "markdown": md, "files": files,
             "skipped": skipped, "time_s": elapsed, "published": published}
+
+
+def run(cfg: DictConfig, command: str | None = None) -> dict:
+    """Run the benchmark (see the module docstring); returns ``{"out_dir", "records", "summary",
+    "markdown", "files", "skipped", "time_s", "published"}``."""
+    from tqdm.auto import tqdm
+
+    from experiments.common import save_config
+
+    t0 = time.perf_counter()
+    points, noises, seeds = _levels(cfg)
+    shapes, skipped = bench_cases(cfg)
+    if not shapes:
+        raise ValueError("no real shapes to run: " + ("; ".join(f"{s['name']}: {s['reason']}" for s in skipped)
+                                                       or f"groups {list(cfg.groups)} are empty"))
+    out = Path(os.path.expanduser(str(cfg.out_dir))).absolute()
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out)
+    n_methods = len(cfg.dss_methods or {}) + len(cfg.classical or {})
+    bar = tqdm(total=len(shapes) * len(points) * len(noises) * len(seeds) * n_methods, desc="real bench",
+               unit="run", disable=not cfg.get("progress", True), dynamic_ncols=True)
+    records = []
+    # cheap levels first: every case of one (points, noise, seed) before the next seed
+    for p in points:
+        for n in noises:
+            for s in seeds:
+                for case in shapes:
+                    records += _run_case(cfg, out, case, p, n, s, bar)
+    bar.close()
+    summary = summarize_bench(records, cfg)
+    title, notes = _title_and_notes(cfg, shapes, points, noises, seeds)
+    md = render_report(summary, title, notes, skipped)
+    return _write(cfg, out, title, md, summary, skipped, records, command, t0)
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="real_bench")

@@ -42,7 +42,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from experiments.evaluation.denoise_table import _mean
+from experiments.evaluation.table.report import mean
 
 log = logging.getLogger(__name__)
 
@@ -134,11 +134,11 @@ def aggregate_point(records: list[dict], methods: list[str]) -> dict:
         out[m] = {"n": len(recs), "failures": len(fails),
                   "failure_rate": len(fails) / len(recs) if recs else None,
                   "statuses": {r["case"]: r["status"] for r in recs},
-                  **{k: _mean([r["metrics"][k] for r in scored]) for k in ("chamfer", "hausdorff", "p2m")},
-                  "ratio": _mean([r["metrics"]["chamfer"] / inputs[r["case"]] for r in scored
+                  **{k: mean([r["metrics"][k] for r in scored]) for k in ("chamfer", "hausdorff", "p2m")},
+                  "ratio": mean([r["metrics"]["chamfer"] / inputs[r["case"]] for r in scored
                                  if inputs.get(r["case"])]),
-                  "time_s": _mean([r.get("time_s") for r in scored])}
-    out["input"] = {"n": len(inputs), "chamfer": _mean(list(inputs.values()))}
+                  "time_s": mean([r.get("time_s") for r in scored])}
+    out["input"] = {"n": len(inputs), "chamfer": mean(list(inputs.values()))}
     return out
 
 

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from experiments.common import flatten
+
 log = logging.getLogger(__name__)
 
 OK_STATUSES = ("ok", "done", "success", "succeeded")
@@ -41,21 +43,6 @@ TIME_KEYS = ("wall_s", "time_s", "time_s.total", "runtime_s", "total_s", "elapse
 NOT_RESULT = ("input", "metrics_input", "floor", "chamfer_floor")
 #: default accuracy metrics, searched in this order (last dotted component, then preference)
 Y_CANDIDATES = (("chamfer", ("paper", "score")), ("p2m", ("score", "paper")))
-
-
-def flatten(d: Any, prefix: str = "") -> dict:
-    """Nested dicts -> ``{"a.b.c": value}``; lists of scalars are kept as lists."""
-    out: dict = {}
-    if isinstance(d, dict):
-        for k, v in d.items():
-            key = f"{prefix}.{k}" if prefix else str(k)
-            if isinstance(v, dict):
-                out.update(flatten(v, key))
-            else:
-                out[key] = v
-    else:
-        out[prefix or "value"] = d
-    return out
 
 
 def _read_overrides(run_dir: str) -> dict:
@@ -298,6 +285,58 @@ def _plot(rows: list[dict], x_key: str, y_keys: list[str], path: str, title: str
     plt.close(fig)
 
 
+def _columns(runs: list[dict], root: str, x_key: str | None, y_keys) -> tuple[str | None, list[str]]:
+    """(time column, accuracy columns): as given (checked) or picked from the runs."""
+    x_key = x_key or pick_time_key(runs)
+    y_keys = list(y_keys or pick_metric_keys(runs))
+    if not y_keys:
+        raise ValueError(
+            f"{root}: no accuracy column found; pass y_keys (columns: {_keys(runs)[:30]})"
+        )
+    for k in [x_key, *y_keys]:
+        if k is not None and k not in _keys(runs):
+            raise KeyError(f"column {k!r} is in no metrics.json under {root}")
+    return x_key, y_keys
+
+
+def _mark_pareto(rows: list[dict], x_key: str | None, y_keys: list[str]) -> None:
+    """``pareto.<y>`` per row (on the front of time and that metric; failed rows excluded), then
+    the rows sorted: successful first, by the first metric."""
+    for yk in y_keys:
+        xs = [
+            (_num(r.get(x_key)) if x_key else 0.0) if not r["_failed"] else math.nan for r in rows
+        ]
+        ys = [_num(r.get(yk)) if not r["_failed"] else math.nan for r in rows]
+        front = pareto_front(xs, ys) if x_key else np.zeros(len(rows), bool)
+        for r, f in zip(rows, front):
+            r[f"pareto.{yk}"] = bool(f)
+    rows.sort(
+        key=lambda r: (
+            r["_failed"],
+            _num(r.get(y_keys[0])) if math.isfinite(_num(r.get(y_keys[0]))) else math.inf,
+        )
+    )
+
+
+def _table(rows: list[dict], x_key: str | None, y_keys: list[str], group_by, columns) -> tuple[list[dict], list[str]]:
+    """(table rows, columns) of the markdown summary."""
+    if group_by:
+        cols = ["label", "n_runs", "failure_rate", *([x_key] if x_key else []), *y_keys]
+    else:
+        cols = ["label", "status", *([x_key] if x_key else []), *y_keys]
+    cols += [c for c in (columns or []) if c not in cols]
+    table_rows = []
+    for r in rows:
+        tr = dict(r)
+        tr.setdefault("status", "failed" if r["_failed"] else "ok")
+        marks = [yk.split(".")[-1] for yk in y_keys if r.get(f"pareto.{yk}")]
+        tr["pareto"] = ", ".join(marks) if marks else ""
+        table_rows.append(tr)
+    if x_key:
+        cols.append("pareto")
+    return table_rows, cols
+
+
 def aggregate(
     root: str | os.PathLike,
     out_dir: str | os.PathLike | None = None,
@@ -323,49 +362,14 @@ def aggregate(
     runs = find_runs(root)
     if not runs:
         raise FileNotFoundError(f"{root}: no metrics.json found below this directory")
-    x_key = x_key or pick_time_key(runs)
-    y_keys = list(y_keys or pick_metric_keys(runs))
-    if not y_keys:
-        raise ValueError(
-            f"{root}: no accuracy column found; pass y_keys (columns: {_keys(runs)[:30]})"
-        )
-    for k in [x_key, *y_keys]:
-        if k is not None and k not in _keys(runs):
-            raise KeyError(f"column {k!r} is in no metrics.json under {root}")
+    x_key, y_keys = _columns(runs, root, x_key, y_keys)
     needed = [k for k in [x_key, *y_keys] if k]
     for r in runs:
         r["label"] = _label(r, label_key)
         r["_failed"] = _is_failed(r, needed)
     rows = _group(runs, group_by, needed) if group_by else runs
-    for yk in y_keys:
-        xs = [
-            (_num(r.get(x_key)) if x_key else 0.0) if not r["_failed"] else math.nan for r in rows
-        ]
-        ys = [_num(r.get(yk)) if not r["_failed"] else math.nan for r in rows]
-        front = pareto_front(xs, ys) if x_key else np.zeros(len(rows), bool)
-        for r, f in zip(rows, front):
-            r[f"pareto.{yk}"] = bool(f)
-    rows.sort(
-        key=lambda r: (
-            r["_failed"],
-            _num(r.get(y_keys[0])) if math.isfinite(_num(r.get(y_keys[0]))) else math.inf,
-        )
-    )
-
-    if group_by:
-        cols = ["label", "n_runs", "failure_rate", *([x_key] if x_key else []), *y_keys]
-    else:
-        cols = ["label", "status", *([x_key] if x_key else []), *y_keys]
-    cols += [c for c in (columns or []) if c not in cols]
-    table_rows = []
-    for r in rows:
-        tr = dict(r)
-        tr.setdefault("status", "failed" if r["_failed"] else "ok")
-        marks = [yk.split(".")[-1] for yk in y_keys if r.get(f"pareto.{yk}")]
-        tr["pareto"] = ", ".join(marks) if marks else ""
-        table_rows.append(tr)
-    if x_key:
-        cols.append("pareto")
+    _mark_pareto(rows, x_key, y_keys)
+    table_rows, cols = _table(rows, x_key, y_keys, group_by, columns)
     title = title or f"Summary of {os.path.basename(os.path.abspath(root))}"
     notes = [
         f"{len(runs)} runs from `{root}`"

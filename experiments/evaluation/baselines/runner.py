@@ -179,6 +179,111 @@ def tail_text(path: str | os.PathLike, n: int = 2000) -> str:
         return ""
 
 
+def _worker_env(threads: int | None) -> dict:
+    """The worker's environment: ``threads`` OMP/MKL/OpenBLAS threads, this package importable."""
+    env = dict(os.environ)
+    if threads is not None:
+        for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            env[k] = str(int(threads))
+    # the worker must import this package even when it is not installed (e.g. a checkout)
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def _read_result(job: str, rec: RunRecord, method: str) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """The worker's output (points, normals or None) from its ``job`` folder, or None with
+    ``rec``'s status and message saying why there is none."""
+    res_path = os.path.join(job, "result.json")
+    if not os.path.exists(res_path):
+        rec.status = "crash"
+        rec.message = (
+            f"worker died with {rec.signal}"
+            if rec.signal
+            else f"worker exited with code {rec.exit_code} and no result"
+        )
+        log.warning("%s: %s", method, rec.message)
+        return None
+    with open(res_path) as f:
+        res = json.load(f)
+    rec.versions = res.get("versions", {})
+    rec.resolved = res.get("resolved", {})
+    rec.wall_s = res.get("wall_s")
+    rec.cpu_s = res.get("cpu_s")
+    if res.get("status") != "done":
+        rec.status = res.get("status", "crash")
+        rec.message = res.get("message", "")
+        if res.get("traceback"):
+            rec.stderr_tail = res["traceback"]
+        log.warning("%s: %s: %s", method, rec.status, rec.message)
+        return None
+    with np.load(os.path.join(job, "output.npz")) as data:
+        p = np.array(data["points"])
+        n = np.array(data["normals"]) if "normals" in data else None
+    return p, n
+
+
+def _run_worker(method: str, params: dict, pts: np.ndarray, nrm: np.ndarray | None, time_limit: float,
+                threads: int | None, rec: RunRecord) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """Run the worker subprocess (its own process group, killed at ``time_limit`` s); its
+    output, or None with ``rec`` saying why (timeout, crash, the method's own failure)."""
+    with tempfile.TemporaryDirectory(prefix="dss_baseline_") as job:
+        with open(os.path.join(job, "job.json"), "w") as f:
+            json.dump({"method": method, "params": params}, f)
+        arrays = {"points": pts} if nrm is None else {"points": pts, "normals": nrm}
+        np.savez(os.path.join(job, "input.npz"), **arrays)
+        err_path = os.path.join(job, "stderr.txt")
+        t0 = time.perf_counter()
+        with open(os.path.join(job, "stdout.txt"), "wb") as so, open(err_path, "wb") as se:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "experiments.evaluation.baselines.worker", job],
+                stdout=so,
+                stderr=se,
+                env=_worker_env(threads),
+                start_new_session=True,
+            )
+            rec.exit_code = wait_or_kill(proc, time_limit)
+            if rec.exit_code is None:
+                rec.total_s = time.perf_counter() - t0
+                rec.status = "timeout"
+                rec.message = f"killed after the time limit of {time_limit:g} s"
+                rec.stderr_tail = tail_text(err_path)
+                log.warning("%s: %s", method, rec.message)
+                return None
+        rec.total_s = time.perf_counter() - t0
+        rec.signal = _signal_name(rec.exit_code)
+        rec.stderr_tail = tail_text(err_path)
+        return _read_result(job, rec, method)
+
+
+def _judge_output(rec: RunRecord, out: RunResult, pts: np.ndarray, p: np.ndarray, n, clean, protocol: str) -> None:
+    """Settle ``rec``'s status from the output ``p``: invalid, NaN, worse than the input
+    (Chamfer against ``clean``, when given) or ok; a usable output goes into ``out``."""
+    rec.n_out = int(len(p)) if p.ndim >= 1 else 0
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        rec.status = "invalid_output"
+        rec.message = f"output has shape {p.shape}, expected (M, 3) with M > 0"
+        return
+    if not np.isfinite(p).all():
+        bad = int((~np.isfinite(p)).any(axis=1).sum())
+        rec.status = "nan"
+        rec.message = f"{bad} of {len(p)} output points are NaN/Inf"
+        return
+    out.points, out.normals = p, n
+    if clean is not None:
+        from dss.metrics import evaluate
+
+        c = _as_array(clean, "clean")
+        rec.judged, rec.protocol = True, protocol
+        rec.chamfer_input = evaluate(pts, c, protocol=protocol).chamfer
+        rec.chamfer_output = evaluate(p, c, protocol=protocol).chamfer
+        if rec.chamfer_output > rec.chamfer_input:
+            rec.status = "worse_than_input"
+            rec.message = f"Chamfer x1e4 ({protocol}) {rec.chamfer_output:.4g} > input {rec.chamfer_input:.4g}"
+            return
+    rec.status, rec.failed = "ok", False
+
+
 def run_method(
     method: str,
     points: Any,
@@ -214,92 +319,10 @@ def run_method(
         rec.message = why
         log.warning("%s unavailable: %s", method, why)
         return RunResult(rec)
-
-    env = dict(os.environ)
-    if threads is not None:
-        for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-            env[k] = str(int(threads))
-    # the worker must import this package even when it is not installed (e.g. a checkout)
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-
     out = RunResult(rec)
-    with tempfile.TemporaryDirectory(prefix="dss_baseline_") as job:
-        with open(os.path.join(job, "job.json"), "w") as f:
-            json.dump({"method": method, "params": params}, f)
-        arrays = {"points": pts} if nrm is None else {"points": pts, "normals": nrm}
-        np.savez(os.path.join(job, "input.npz"), **arrays)
-        err_path = os.path.join(job, "stderr.txt")
-        t0 = time.perf_counter()
-        with open(os.path.join(job, "stdout.txt"), "wb") as so, open(err_path, "wb") as se:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "experiments.evaluation.baselines.worker", job],
-                stdout=so,
-                stderr=se,
-                env=env,
-                start_new_session=True,
-            )
-            rec.exit_code = wait_or_kill(proc, time_limit)
-            if rec.exit_code is None:
-                rec.total_s = time.perf_counter() - t0
-                rec.status = "timeout"
-                rec.message = f"killed after the time limit of {time_limit:g} s"
-                rec.stderr_tail = tail_text(err_path)
-                log.warning("%s: %s", method, rec.message)
-                return out
-        rec.total_s = time.perf_counter() - t0
-        rec.signal = _signal_name(rec.exit_code)
-        rec.stderr_tail = tail_text(err_path)
-        res_path = os.path.join(job, "result.json")
-        if not os.path.exists(res_path):
-            rec.status = "crash"
-            rec.message = (
-                f"worker died with {rec.signal}"
-                if rec.signal
-                else f"worker exited with code {rec.exit_code} and no result"
-            )
-            log.warning("%s: %s", method, rec.message)
-            return out
-        with open(res_path) as f:
-            res = json.load(f)
-        rec.versions = res.get("versions", {})
-        rec.resolved = res.get("resolved", {})
-        rec.wall_s = res.get("wall_s")
-        rec.cpu_s = res.get("cpu_s")
-        if res.get("status") != "done":
-            rec.status = res.get("status", "crash")
-            rec.message = res.get("message", "")
-            if res.get("traceback"):
-                rec.stderr_tail = res["traceback"]
-            log.warning("%s: %s: %s", method, rec.status, rec.message)
-            return out
-        with np.load(os.path.join(job, "output.npz")) as data:
-            p = np.array(data["points"])
-            n = np.array(data["normals"]) if "normals" in data else None
-
-    rec.n_out = int(len(p)) if p.ndim >= 1 else 0
-    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
-        rec.status = "invalid_output"
-        rec.message = f"output has shape {p.shape}, expected (M, 3) with M > 0"
-        return out
-    if not np.isfinite(p).all():
-        bad = int((~np.isfinite(p)).any(axis=1).sum())
-        rec.status = "nan"
-        rec.message = f"{bad} of {len(p)} output points are NaN/Inf"
-        return out
-    out.points, out.normals = p, n
-    if clean is not None:
-        from dss.metrics import evaluate
-
-        c = _as_array(clean, "clean")
-        rec.judged, rec.protocol = True, protocol
-        rec.chamfer_input = evaluate(pts, c, protocol=protocol).chamfer
-        rec.chamfer_output = evaluate(p, c, protocol=protocol).chamfer
-        if rec.chamfer_output > rec.chamfer_input:
-            rec.status = "worse_than_input"
-            rec.message = f"Chamfer x1e4 ({protocol}) {rec.chamfer_output:.4g} > input {rec.chamfer_input:.4g}"
-            return out
-    rec.status, rec.failed = "ok", False
+    result = _run_worker(method, params, pts, nrm, time_limit, threads, rec)
+    if result is not None:
+        _judge_output(rec, out, pts, *result, clean, protocol)
     return out
 
 
