@@ -123,9 +123,21 @@ def noise_settings(cfg: DictConfig, noise: float, n_points: int | None = None) -
         # regularisers move the points) stays continuous in the noise level
         values["lr_points"] = lr["used"] = float(values["lr_points"]) * cyc["exact"] / cyc["used"]
         lr["cycles_rounding"] = f"x {cyc['exact']:.3g} / {cyc['used']}"
+    sparse = float(cfg.get("sparse_rate_power", 0) or 0)
+    if n_points is not None and sparse > 0 and lr["setting"] == "auto":
+        # sparser than the tuned density: each point's neighbours span a wider patch, whose curvature
+        # the plane fit takes for noise (its bias grows with the patch's area, ~1 / n_points), so
+        # the regularisers move the points less far: rate x (n_points / tuned points)^power
+        tuned = int(cfg.get("reg_dilation_points", 20000))
+        if n_points < tuned:
+            factor = (n_points / tuned) ** sparse
+            values["lr_points"] = lr["used"] = float(values["lr_points"]) * factor
+            lr["sparse_scale"] = f"x ({n_points} / {tuned})^{sparse:g} = {factor:.3g}"
     if str(cfg.optimizer.get("max_displacement", 0)) == "auto":
         # max_move noise levels (the noise is in bbox diagonals, the optimiser's frame)
-        max_move = float(cfg.get("max_move", 0) or 0)
+        table = cfg.get("max_move_by_noise")
+        max_move = (interpolate_by_noise({float(k): float(v) for k, v in table.items()}, float(noise)) if table
+                    else float(cfg.get("max_move", 0) or 0))
         values["max_displacement"] = max_move * float(noise)
         notes["max_displacement"] = {"setting": "auto", "used": values["max_displacement"], "max_move": max_move}
     if n_points is not None:

@@ -358,3 +358,40 @@ def denoise_cases(data: dict, methods: str, metrics: str = "chamfer", control: s
     if num:
         header.append(f"{label[num]} / {label[den]} (CD)")
     return _table(header, rows)
+
+
+@generator("real_levels")
+def real_levels(data: dict, group: str, methods: str, points: str = "") -> list[str]:
+    """A row per noise level of ``dss-real-bench``'s ``report.json`` for one ``group`` (and, with
+    ``points``, one point count): the noisy input's and the per-case best classical CD / HD, each
+    of ``methods`` (``"name=label|..."``) as CD / HD, the first method's ratios to the best
+    classical, how many of its cases end above the input's Hausdorff, and its CPU seconds."""
+    wanted = _pairs(methods, "methods")
+    levels = [lv for lv in data["summary"]["levels"] if lv["group"] == group
+              and (not points or int(lv["points"]) == int(points))]
+    if not levels:
+        raise ValueError(f"no level of group {group!r}{f' at {points} points' if points else ''} in the report")
+    first = wanted[0][0]
+    rows = []
+    for lv in levels:
+        m = lv["mean"]
+        missing = [n for n, _ in wanted if n not in m]
+        if missing:
+            raise ValueError(f"methods {missing} are not in the report (it has {sorted(m)})")
+
+        def pair(name):
+            return f"{_num(m[name]['chamfer'], 'chamfer')} / {_num(m[name]['hausdorff'], 'hausdorff')}"
+
+        best = m["best_classical"]
+        a, b = m[first], best
+        rows.append([f"{100 * lv['noise']:g}% ({100 * lv['noise'] * data.get('paper_label_factor', 2.0):g}%)",
+                     str(lv["points"]), f"{lv['n']}", pair("input"), pair("best_classical"),
+                     *[pair(n) for n, _ in wanted],
+                     _num(a["chamfer"] / b["chamfer"] if b["chamfer"] else None, "ratio"),
+                     _num(a["hausdorff"] / b["hausdorff"] if b["hausdorff"] else None, "ratio"),
+                     f"{lv['hd_above_input'][first]}/{lv['n']}", _num(lv["cpu_s"].get(first), "cpu")])
+    label = dict(wanted)
+    header = ["noise (paper's label)", "points", "cases", "input CD / HD", "best classical CD / HD",
+              *[f"{label[n]} CD / HD" for n, _ in wanted], f"{label[first]} / best CD", f"{label[first]} / best HD",
+              "HD above input", f"{label[first]} CPU s"]
+    return _table(header, rows)
