@@ -528,18 +528,21 @@ def test_first_use_compile_is_left_out_of_the_run_time(case, tmp_path, monkeypat
 def test_denoise_blowup_fails_and_writes_no_result(case, tmp_path):
     """optimizer.lr_points=1e6 throws the cloud far away: the optimiser undoes and reports it, and
     when halving the rates cannot recover, the run fails with a clear message and writes no
-    denoised cloud or metrics."""
+    denoised cloud or metrics. (Without the displacement bound, which keeps every point within a
+    few noise levels of its input and so cannot blow up.)"""
     from dss.optimize import OptimizationDiverged
     from experiments.apps.denoise import run
 
     out = tmp_path / "blow"
     with pytest.raises(OptimizationDiverged, match="diverged and did not recover.*lower the learning rates"):
         run(compose_cfg("denoise", denoise_overrides(case, out, "optimizer.cycles=1", "optimizer.normal_steps=4",
-                                                     "optimizer.lr_points=1e6", "+optimizer.max_lr_halvings=2")))
+                                                     "optimizer.lr_points=1e6", "+optimizer.max_lr_halvings=2",
+                                                     "optimizer.max_displacement=0")))
     assert not (out / "denoised.ply").exists() and not (out / "metrics.json").exists()
     # with room to halve, the run recovers, keeps the input's size and reports the halvings
     m = run(compose_cfg("denoise", denoise_overrides(case, tmp_path / "ok", "optimizer.cycles=1",
-                                                     "optimizer.normal_steps=4", "optimizer.lr_points=1e6")))
+                                                     "optimizer.normal_steps=4", "optimizer.lr_points=1e6",
+                                                     "optimizer.max_displacement=0")))
     from dss.pointcloud import bbox_diagonal, load_ply
 
     res = load_ply(tmp_path / "ok" / "denoised.ply", compute_normals=False)

@@ -45,6 +45,17 @@ def _pinned_config(pins: dict, overrides: list[str], reference: str):
     apart from this test)."""
     cfg = compose_denoise([*overrides, f"reference={reference}"])
     OmegaConf.set_struct(cfg, False)
+    # what the pins predate, switched off: the displacement bound, the sparse-cloud rate, the
+    # fusion weight by noise, the rim pull; and channel=auto meant planes for identity then
+    if not any(o.startswith("optimizer.max_displacement=") for o in overrides):
+        cfg.optimizer.max_displacement = 0.0
+    cfg.sparse_rate_power = 0.0
+    cfg.max_move_by_noise = None
+    cfg.optimizer.rim_k = 0
+    if cfg.get("fusion") is not None:
+        cfg.fusion.weight_by_noise = None
+    if reference == "identity" and cfg.channel.name == "auto":
+        cfg.channel = {"name": "planes"}
     for key, value in pins["tables"].items():
         cfg[key] = {float(k): v for k, v in value.items()} if isinstance(value, dict) else value
     if cfg.budget.name == "auto":
@@ -139,7 +150,8 @@ def test_shipped_config_resolves_every_auto_setting():
     cfg = compose_denoise(["reference=identity"])
     for noise in (0.001, 0.003, 0.01, 0.02, 0.05):
         values, notes = st.noise_settings(cfg, noise)
-        assert set(notes) == set(AUTO) and all(notes[k]["setting"] == "auto" for k in AUTO)
+        auto = (*AUTO, "max_displacement")  # the shipped config bounds the displacement (auto) too
+        assert set(notes) == set(auto) and all(notes[k]["setting"] == "auto" for k in auto)
         assert values["cycles"] >= 1 and values["lr_points"] > 0 and values["final_projection_k"] >= 1
 
 
@@ -224,7 +236,7 @@ def test_fusion_and_channel_refusals():
     cfg = compose_denoise(["reference=identity", "fusion.enabled=sometimes"])
     with pytest.raises(ValueError, match="fusion.enabled must be"):
         st.resolve(cfg, 0.01, 20000, _generator("identity"))
-    planes = st.resolve(compose_denoise(["reference=identity"]), 0.01, 20000, _generator("identity"))
+    planes = st.resolve(compose_denoise(["reference=identity", "channel=planes"]), 0.01, 20000, _generator("identity"))
     assert planes.shading == "planes" and planes.fusion is not None and planes.fusion.passes == 4
     sun = st.resolve(compose_denoise(["reference=l0"]), 0.01, 20000, _generator("l0"))
     assert sun.shading == "sun" and sun.fusion is None and list(sun.spec.image_size) == [64, 64]

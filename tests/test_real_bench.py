@@ -33,8 +33,9 @@ def _record(case, method, shape, group, cd, hd, status="ok"):
 def test_best_classical_is_the_per_case_minimum_of_each_metric_and_missing_cases_are_listed(tmp_path):
     from experiments.evaluation.real_benchmark import render_report, summarize_bench
 
-    cfg = _cfg(tmp_path, "classical={a: {method: cgal_jet, params: {k: 16}}, b: {method: cgal_jet, params: {k: 32}}}",
-               "dss_methods={dss_default: []}")
+    cfg = _cfg(tmp_path)
+    cfg.classical = {"a": {"method": "cgal_jet", "params": {"k": 16}}, "b": {"method": "cgal_jet", "params": {"k": 32}}}
+    cfg.dss_methods = {"dss_default": []}
     recs = [_record("c1", "input", "s1", "held_out", 2.0, 20.0), _record("c1", "a", "s1", "held_out", 0.5, 15.0),
             _record("c1", "b", "s1", "held_out", 0.7, 12.0), _record("c1", "dss_default", "s1", "held_out", 0.4, 21.0),
             _record("c2", "input", "s2", "held_out", 2.0, 20.0), _record("c2", "a", "s2", "held_out", 0.5, 15.0)]
@@ -52,9 +53,9 @@ def test_two_real_meshes_run_every_method_and_resume(tmp_path):
     from experiments.evaluation.real_benchmark import run
 
     cfg = _cfg(tmp_path / "bench", "groups=[tuning,held_out]", "shapes_per_group=1", "points=[2000]",
-               "noise=[0.005]", "seeds=[0]", "face_scan=false",
-               "classical={jet_k16: {method: cgal_jet, params: {k: 16}}}")
-    cfg.dss_methods = {"dss_default": ["optimizer.cycles=1"]}
+               "noise=[0.005]", "seeds=[0]", "face_scan=false")
+    cfg.classical = {"jet_k16": {"method": "cgal_jet", "params": {"k": 16}}}
+    cfg.dss_methods = {"dss_default": []}
     res = run(cfg)
     levels = res["summary"]["levels"]
     assert {lv["group"] for lv in levels} == {"tuning", "held_out"} and all(lv["n"] == 1 for lv in levels)
