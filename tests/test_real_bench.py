@@ -54,7 +54,7 @@ def test_two_real_meshes_run_every_method_and_resume(tmp_path):
 
     cfg = _cfg(tmp_path / "bench", "groups=[tuning,held_out]", "shapes_per_group=1", "points=[2000]",
                "noise=[0.005]", "seeds=[0]", "face_scan=false")
-    cfg.classical = {"jet_k16": {"method": "cgal_jet", "params": {"k": 16}}}
+    cfg.classical = {"taubin": {"method": "open3d_taubin", "params": {"iterations": 10}}}  # open3d: no extra needed
     cfg.dss_methods = {"dss_default": []}
     res = run(cfg)
     levels = res["summary"]["levels"]
