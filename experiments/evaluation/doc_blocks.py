@@ -379,7 +379,7 @@ def real_levels(data: dict, group: str, methods: str, points: str = "") -> list[
         if missing:
             raise ValueError(f"methods {missing} are not in the report (it has {sorted(m)})")
 
-        def pair(name):
+        def pair(name, m=m):
             return f"{_num(m[name]['chamfer'], 'chamfer')} / {_num(m[name]['hausdorff'], 'hausdorff')}"
 
         best = m["best_classical"]

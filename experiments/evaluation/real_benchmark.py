@@ -451,6 +451,22 @@ def _title_and_notes(cfg: DictConfig, shapes: list[dict], points, noises, seeds)
     return title, notes
 
 
+#: what report.json keeps of each record (the records/ folder of the run keeps everything)
+COMPACT_KEYS = ("case", "method", "shape", "group", "points", "noise", "seed", "status", "message", "cpu_s", "params")
+COMPACT_METRICS = (*KEYS, "chamfer_pred_to_gt", "chamfer_gt_to_pred", "hausdorff_pred_to_gt", "pred_to_gt_p99",
+                   "point_to_mesh")
+
+
+def _compact(rec: dict) -> dict:
+    """A record for report.json: its identity, status, CPU seconds and metrics (4 significant digits)."""
+    out = {k: rec[k] for k in COMPACT_KEYS if rec.get(k) not in (None, "", {})}
+    m = rec.get("metrics") or {}
+    out["metrics"] = {k: float(f"{m[k]:.4g}") for k in COMPACT_METRICS if isinstance(m.get(k), (int, float))}
+    if rec.get("noise_used"):
+        out["noise_estimated"] = (rec["noise_used"] or {}).get("estimated")
+    return out
+
+
 def _write(cfg: DictConfig, out: Path, title: str, md: str, summary: dict, skipped: list, records: list,
            command: str | None, t0: float) -> dict:
     """The charts, report.json, report.md, README.md (and the published copies); the run's result."""
@@ -464,7 +480,8 @@ def _write(cfg: DictConfig, out: Path, title: str, md: str, summary: dict, skipp
                        f"{lv['points']} points, noise {100 * lv['noise']:g}%, {lv['group']} (n={lv['n']})")
             files[name] = name
     elapsed = time.perf_counter() - t0
-    result = {"title": title, "summary": summary, "skipped": skipped, "records": records, "versions": versions(),
+    result = {"title": title, "summary": summary, "skipped": skipped, "records": [_compact(r) for r in records],
+              "paper_label_factor": PAPER_LABEL_FACTOR, "versions": versions(),
               "config": OmegaConf.to_container(cfg, resolve=True), "time_s": elapsed, "files": files,
               "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
     atomic_write_json(out / "report.json", result)
@@ -473,7 +490,7 @@ def _write(cfg: DictConfig, out: Path, title: str, md: str, summary: dict, skipp
     atomic_write_text(out / "README.md", (
         f"# {title}\n\nProduced by (from the repository root, after `dss-data real`):\n\n```\n{command}\n```\n\n"
         f"Last run: {time.strftime('%Y-%m-%d %H:%M:%S')}, {elapsed:.0f} s (stored records not rerun), "
-        f"{os.cpu_count()} CPU cores.\n\nFiles: `report.md`, `report.json` (every record and summary), "
+        f"{os.cpu_count()} CPU cores.\n\nFiles: `report.md`, `report.json` (the summary and every record's metrics), "
         "`accuracy_vs_time_<points>_<noise>_<group>.png`, `config.yaml`; in the run folder only: `cases/`, "
         "`records/` (delete one to rerun it), `outputs/` and `runs/` (DSS run directories).\n"))
     published = []
