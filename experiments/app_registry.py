@@ -40,15 +40,16 @@ class App:
 APPS: dict[str, App] = {
     "denoise": App(
         "dss-denoise", "experiments.apps.denoise",
-        "Denoise a point cloud with multi-view DSS: render it from many views, denoise the renders "
-        "(the shipped Pix2Pix model, or an image filter), and move the points and normals until their "
-        "renders match; the plane fusion then merges the views. Without an input it denoises the shipped "
-        "example and scores it against its ground truth. Writes denoised.ply, metrics.json and figures "
-        "into outputs/denoise/<date>/ (outputs/denoise/latest). docs/denoising.md.",
+        "Denoise a point cloud with multi-view DSS: render it from many views, make reference images "
+        "(the renders themselves by default, a Pix2Pix model or an image filter), and move the points and "
+        "normals until their renders match while the projection regulariser pulls the points onto their "
+        "neighbours' planes; every setting follows the estimated noise level. Without an input it denoises "
+        "the shipped example and scores it against its ground truth. Writes denoised.ply, metrics.json and "
+        "figures into outputs/denoise/<date>/ (outputs/denoise/latest). docs/denoising.md.",
         (("input=PLY", "the noisy cloud (`dss-denoise scan.ply` means the same); default: the shipped example"),
-         ("noise=0.003|0.01", "the noise level as a fraction of the bbox diagonal; default: estimated"),
-         ("reference=onnx|identity|oracle|l0|slic", "what makes the target images"),
-         ("reference.model=ONNX", "your denoiser (dss-train, dss-export); default: the shipped one for the noise"),
+         ("noise=0.005", "the noise std as a fraction of the bbox diagonal; default: estimated"),
+         ("reference=identity|onnx|oracle|l0|slic", "what makes the target images"),
+         ("channel=point|planes|sun|auto", "what the renders show (planes: with the plane fusion)"),
          ("device=cpu|cuda|auto", "where the optimisation runs")),
         ("reference", "denoise_parts/budget", "denoise_parts/channel", "denoise_parts/fusion")),
     "filter": App(
