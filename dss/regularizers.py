@@ -308,6 +308,39 @@ def _fit_planes(neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return centroid, evecs[..., 0]
 
 
+def readmit_near_surface(candidates: torch.Tensor, surface: torch.Tensor, max_distance: float, k: int = 16,
+                         max_spread: float = 4.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which of ``candidates`` (M, 3) lie on ``surface`` (N, 3) after all: (mask (M,) bool, their
+    points projected onto it (K, 3), the planes' unit normals there (K, 3)).
+
+    A candidate lies on the surface when its distance to the plane of its ``k`` nearest surface
+    points is at most ``max_distance`` and its offset from their centroid along that plane is at
+    most ``max_spread`` x their in-plane spread (the std along the main axis): near the patch,
+    a tip's last sample included, not on the plane's extension far away. Points removed as
+    outliers before denoising because they are sparser than their neighbours (the tip of a horn
+    at low noise) pass; junk off the surface does not.
+    """
+    if candidates.dim() != 2 or candidates.shape[1] != 3 or surface.dim() != 2 or surface.shape[1] != 3:
+        raise ValueError("candidates and surface must be (M, 3) and (N, 3)")
+    if len(candidates) == 0 or len(surface) <= k:
+        empty = torch.zeros(0, 3, dtype=candidates.dtype)
+        return torch.zeros(len(candidates), dtype=torch.bool), empty, empty
+    with torch.no_grad():
+        s = surface.detach().double()
+        c = candidates.detach().double()
+        nb = gather_neighbors(s, knn(s, k, query=c).idx)
+        centroid = nb.mean(1)
+        centred = nb - centroid.unsqueeze(1)
+        evals, evecs = batched_eigh(torch.einsum("nki,nkj->nij", centred, centred) / nb.shape[1])
+        normal = evecs[..., 0]
+        d = c - centroid
+        off = (d * normal).sum(-1)
+        along = (d - off.unsqueeze(-1) * normal).norm(dim=-1)
+        ok = (off.abs() <= float(max_distance)) & (along <= max_spread * evals[..., 2].clamp_min(0).sqrt())
+        proj = c - off.unsqueeze(-1) * normal
+        return ok, proj[ok].to(candidates.dtype), normal[ok].to(candidates.dtype)
+
+
 def pull_rim_strays(points: torch.Tensor, k: int = 16, dilation: int = 1, *, ratio: float = 1.3,
                     target: float = 1.0, iterations: int = 2) -> tuple[torch.Tensor, int]:
     """Move points that lie beyond the rim of their own neighbourhood back to it. (N, 3) ->

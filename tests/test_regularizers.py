@@ -469,3 +469,20 @@ def test_rim_strays_move_back_onto_their_patch_and_boundaries_stay():
     assert 1 <= moved < 0.02 * len(pts)
     with pytest.raises(ValueError, match="ratio"):
         pull_rim_strays(pts, ratio=0.0)
+
+
+def test_readmit_near_surface_takes_points_on_the_surface_and_leaves_junk():
+    """readmit_near_surface: a removed point just off the patch's plane, near its edge, is taken
+    and projected onto it; one far off the plane, and one on the plane's extension far from the
+    patch, are not."""
+    from dss.regularizers import readmit_near_surface
+
+    g = torch.Generator().manual_seed(0)
+    xy = torch.rand(4000, 2, generator=g)
+    surface = torch.cat([xy, torch.zeros(4000, 1)], 1)
+    cand = torch.tensor([[0.5, 0.5, 0.004], [1.01, 0.5, -0.003], [0.5, 0.5, 0.2], [3.0, 0.5, 0.0]])
+    ok, proj, normals = readmit_near_surface(cand, surface, max_distance=0.01)
+    assert ok.tolist() == [True, True, False, False]
+    assert torch.allclose(proj[:, 2], torch.zeros(2), atol=1e-6) and torch.allclose(normals[:, 2].abs(), torch.ones(2))
+    none, _, _ = readmit_near_surface(torch.zeros(0, 3), surface, 0.01)
+    assert none.shape == (0,)

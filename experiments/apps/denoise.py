@@ -84,7 +84,7 @@ def run(cfg: DictConfig) -> dict:
     save_config(s.config, out)
     job.log_start(data, generator, s)
     with clock("optimization"):
-        refined = job.refine(cfg, s, data.cloud, generator, truth, dev)
+        refined = job.readmit(cfg, job.refine(cfg, s, data.cloud, generator, truth, dev), data)
     mode = normals_mode(cfg.normals.get("output", "auto"), refined.history)
     with clock("write"):
         written, output = job.write(cfg, refined, mode, data, output, out)

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from dss.schedule import interpolate_by_noise
 from experiments.denoising import inputs, references
 from experiments.denoising.figures import check_figures, write_figures
 from experiments.denoising.refine import Refined, output_normals
@@ -159,6 +160,38 @@ def refine(cfg: DictConfig, settings, cloud, generator, truth: GroundTruth, devi
                         shading=settings.shading, fusion=settings.fusion, noise=settings.noise, device=device,
                         progress=bool(cfg.get("progress", True)), desc=f"dss-denoise ({generator.name})",
                         clean=truth.clean, mesh=truth.mesh)
+
+
+def readmit(cfg: DictConfig, refined: Refined, data: Prepared) -> Refined:
+    """The removed outliers that lie within ``outliers.readmit`` noise levels (``readmit_by_noise``
+    when given: the levels by noise level, interpolated in log noise) of the denoised
+    surface (:func:`dss.regularizers.readmit_near_surface`) join the result, projected onto it
+    (normals from the local plane, signed like the nearest result point's); ``data.removed`` and
+    the outlier report (``readmitted``) follow. At low noise the spacing test also takes the
+    sparse last samples of thin tips, whose loss the output's Hausdorff distance shows."""
+    node = cfg.get("outliers") or {}
+    table = node.get("readmit_by_noise")
+    levels = (interpolate_by_noise({float(k): float(v) for k, v in table.items()}, data.noise.used) if table
+              else float(node.get("readmit", 0) or 0))
+    if data.removed is None or levels <= 0:
+        return refined
+    from dss.pointcloud import bbox_diagonal
+    from dss.regularizers import readmit_near_surface
+
+    pts, nrm = refined.points, refined.normals
+    ok, proj, pn = readmit_near_surface(data.removed.points.to(pts), pts, levels * data.noise.used * float(bbox_diagonal(pts)))
+    n_ok = int(ok.sum())
+    data.outliers["readmitted"] = n_ok
+    if n_ok == 0:
+        return refined
+    from dss.knn import knn
+
+    near = knn(pts, 1, query=proj).idx[:, 0].long()
+    pn = torch.where((pn * nrm[near]).sum(1, keepdim=True) < 0, -pn, pn)
+    data.removed = data.removed.select(~ok) if n_ok < len(ok) else None
+    log.info("readmitted %d of %d removed points: they lie on the denoised surface", n_ok, len(ok))
+    return Refined(torch.cat([pts, proj.to(pts.dtype)]), torch.cat([nrm, pn.to(nrm.dtype)]), refined.history,
+                   refined.ref, refined.norm, refined.optimizer)
 
 
 def write(cfg: DictConfig, refined: Refined, mode: str, data: Prepared, output: Path,
