@@ -200,8 +200,9 @@ def test_generated_cases_and_paths(tmp_path):
         cfg = compose("denoise_table")
     assert cfg.published_dir == "results/denoise/table_0.01_20000" and cfg.methods == "all"
     labels = runners.method_list(cfg)
-    assert labels[-6:] == ["dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle", "dss_pix2pix_fast",
-                           "dss_identity_fast"] and "cgal_jet" in labels
+    assert labels[-8:] == ["dss_default", "dss_pix2pix", "dss_l0", "dss_identity", "dss_oracle",
+                           "dss_pix2pix_fast", "dss_identity_fast", "dss_default_fast"] and "cgal_jet" in labels
+    assert runners.request("dss_default", cfg, 0.01)["overrides"] == []
     assert "budget=fast" in runners.request("dss_identity_fast", cfg, 0.01)["overrides"]
     req = runners.request("dss_pix2pix", cfg, 0.01)
     assert req["overrides"] == ["reference=onnx", "reference.threads=1"]
