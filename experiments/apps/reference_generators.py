@@ -149,6 +149,13 @@ class OnnxReference(_Generator):
     def render_spec(self, base: RenderSpec | None = None) -> tuple[RenderSpec, str]:
         return spec_from_metadata(self.denoiser.metadata, base)
 
+    @property
+    def last_uncertainty(self) -> torch.Tensor | None:
+        """(V, H, W) the predicted Laplace scale of each pixel's inverse depth in the latest call
+        (a model trained with ``uncertainty``), else None; the plane fusion may read it."""
+        ls = self.denoiser.last_log_scale
+        return None if ls is None else torch.from_numpy(np.exp(ls[:, 0]))
+
     def __call__(self, images: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         x = images.detach().cpu().numpy()
         y = torch.from_numpy(self.denoiser.denoise_views(x, pad=True)).to(images)
