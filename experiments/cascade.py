@@ -116,9 +116,16 @@ def load_cascade_item(root, entry: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def _choose(shapes: list[dict], split: str, per_family: int, real: int | None) -> list[dict]:
     """The first ``per_family`` shapes of each generated family in ``split`` and the first
-    ``real`` real shapes (None: all), in manifest order."""
+    ``real`` real shapes (None: all), in manifest order; the real ones by sampling first
+    (``real-<mesh>-<k>``: every mesh's k = 0, then k = 1, ...), so that a few cover every mesh."""
     out, seen = [], {}
-    for s in shapes:
+
+    def key(s):
+        if s["family"] != "real":
+            return (0, 0)
+        return (1, int(s["shape_id"].rsplit("-", 1)[1]))
+
+    for s in sorted(shapes, key=key):
         if s["split"] != split:
             continue
         fam = s["family"]

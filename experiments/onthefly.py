@@ -107,7 +107,8 @@ class CloudPairStream(PairStream):
                  shuffle: bool = True, seed: int = 0, crop_size: int | None = None, random_crop: bool = True,
                  flips=(), crop_min_coverage: float = 0.0, max_pairs: int | None = None, rank: int = 0,
                  world_size: int = 1, normals_k: int = 16, device: str = "cpu", pool: int = 4, stream: int = 0,
-                 noise_range=None, cascade: str | Path | None = None, multiview: bool = False, probes: int = 2048):
+                 noise_range=None, cascade: str | Path | None = None, multiview: bool = False, probes: int = 2048,
+                 spread_val: bool = False):
         super().__init__([], batch_size, spec.image_size, shuffle=shuffle, seed=seed, crop_size=crop_size,
                          random_crop=random_crop, flips=flips, interleave=1, drop_last=False, max_pairs=None,
                          rank=rank, world_size=world_size, planes=spec.shading == "planes", focal=spec.focal,
@@ -124,6 +125,7 @@ class CloudPairStream(PairStream):
         self.pool = max(1, int(pool))
         self.max_pairs = max_pairs
         self.stream = int(stream)
+        self.spread_val = bool(spread_val)
         self._clouds: dict[int, tuple] = {}
         self.noise_range = None if noise_range is None else tuple(float(x) for x in noise_range)
         if self.noise_range is not None and not 0 < self.noise_range[0] < self.noise_range[1]:
@@ -156,7 +158,10 @@ class CloudPairStream(PairStream):
             per_rank = len(order) // self.world_size
             order = order[self.rank::self.world_size][:per_rank]
         if self.max_pairs is not None:
-            order = order[:max(1, -(-int(self.max_pairs) // self.views_per_shape))]
+            k = max(1, -(-int(self.max_pairs) // self.views_per_shape))
+            if self.spread_val and not self.shuffle and k < len(order):  # evenly over the split's shapes
+                order = [order[int(j)] for j in np.unique(np.linspace(0, len(order) - 1, k).round().astype(int))]
+            order = order[:k]
         return order
 
     def __len__(self) -> int:
@@ -301,6 +306,10 @@ class OnTheFlyDataModule(L.LightningDataModule):
         any_noise: accept a noise level the manifest does not list.
         noise_range, cascade, multiview, probes: the options of the module docstring
             (``noise_range`` null: the dataset's own with ``noise_level: range``).
+        val_multiview: multi-view validation batches (full renders; their probes give the
+            fusion's measures, ``val/probe_*``); None: as ``multiview``. Validation then takes
+            its ``max_val_pairs`` from shapes spread evenly over the split (the real meshes of
+            a mixed dataset come last in it).
     """
 
     def __init__(self, root: str | Path, noise_level: float, views_per_shape: int = 8, batch_size: int = 8,
@@ -308,7 +317,8 @@ class OnTheFlyDataModule(L.LightningDataModule):
                  flips: Any = "auto", crop_min_coverage: float = 0.0, max_val_pairs: int | None = 64,
                  num_workers: int = 0, seed: int = 0, device: str = "auto", pool: int = 4, any_noise: bool = False,
                  pin_memory: bool = False, persistent_workers: bool = False, noise_range=None,
-                 cascade: str | None = None, multiview: bool = False, probes: int = 2048, **_: Any):
+                 cascade: str | None = None, multiview: bool = False, probes: int = 2048,
+                 val_multiview: bool | None = None, **_: Any):
         super().__init__()
         self.root = Path(root).expanduser()
         self.noise_range = None if noise_range is None else [float(x) for x in noise_range]
@@ -316,6 +326,7 @@ class OnTheFlyDataModule(L.LightningDataModule):
         self.noise_level = float("nan") if self.range_from_data else float(noise_level)
         self.cascade = None if cascade in (None, "", "null") else str(Path(cascade).expanduser())
         self.multiview = bool(multiview)
+        self.val_multiview = self.multiview if val_multiview is None else bool(val_multiview)
         self.probes = int(probes)
         self.views_per_shape = int(views_per_shape)
         self.batch_size = int(batch_size)
@@ -381,7 +392,9 @@ class OnTheFlyDataModule(L.LightningDataModule):
             crop_min_coverage=self.crop_min_coverage if train else 0.0,
             max_pairs=None if train else self.max_val_pairs, rank=rank, world_size=world,
             normals_k=int(m["config"]["normals_k"]), device=self._device(), pool=self.pool, stream=0 if train else 1,
-            noise_range=self.noise_range, cascade=self.cascade, multiview=self.multiview, probes=self.probes)
+            noise_range=self.noise_range, cascade=self.cascade,
+            multiview=self.multiview if train else self.val_multiview, probes=self.probes,
+            spread_val=not train and self.val_multiview)
 
     def setup(self, stage: str | None = None) -> None:
         self._load()

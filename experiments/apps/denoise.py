@@ -35,7 +35,7 @@ from typing import Any
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dss.timing import StageClock
 from experiments.common import (
@@ -454,12 +454,21 @@ def make_reference(cfg: DictConfig, noise: float | None):
     from hydra.errors import InstantiationException
 
     try:
-        return instantiate(node, **kwargs), note
+        generator = instantiate(node, **kwargs)
     except InstantiationException as e:
         # Hydra wraps the generator's own (clear) error; show that one to the user.
         if isinstance(e.__cause__, Exception):
             raise e.__cause__ from None
         raise
+    if hasattr(generator, "resolve_for_noise"):  # reference=auto: the table's entry for this noise level
+        if noise is None:
+            raise ValueError("reference=auto needs a noise level (noise=... or the estimate)")
+        generator, note, fusion = generator.resolve_for_noise(noise)
+        if fusion:
+            with open_dict(cfg):
+                for k, v in fusion.items():
+                    cfg.fusion[k] = v
+    return generator, note
 
 
 def progress_bar(total: int, desc: str, enabled: bool):
