@@ -6,7 +6,8 @@ the global step, the epoch, the cumulative process CPU hours of training (valida
 carried in the checkpoint, so a resumed run continues the count) and every ``val/*`` metric;
 and redraws ``learning_curve.png`` (the metrics of ``plot`` against CPU hours, with the noisy
 input's value where it is logged, dashed). With ``torch_threads=1`` and ``data.num_workers=0``
-(the on-the-fly renders in the training process) the CPU hours are the whole cost of the run.
+(the on-the-fly renders in the training process) the CPU hours are the whole cost of the run;
+``max_cpu_minutes`` stops training when they reach a budget.
 """
 
 from __future__ import annotations
@@ -34,8 +35,11 @@ DEFAULT_PLOT = ("val/depth_err", "val/normal_err_deg", "val/probe_spread", "val/
 class LearningCurve(L.Callback):
     """Records validation metrics against cumulative CPU hours (module docstring)."""
 
-    def __init__(self, filename: str = "learning_curve", plot=DEFAULT_PLOT):
+    def __init__(self, filename: str = "learning_curve", plot=DEFAULT_PLOT, max_cpu_minutes: float | None = None):
         self.filename = str(filename)
+        #: stop training once the run (resumed parts included) has used this much CPU time: on a
+        #: shared machine the wall-clock limit (trainer.max_time) says little about the cost
+        self.max_cpu_minutes = None if max_cpu_minutes in (None, 0) else float(max_cpu_minutes)
         self.plot = [str(p) for p in plot]
         self.cpu_s = 0.0  # before this process (from the checkpoint)
         self._t0: float | None = None
@@ -52,6 +56,11 @@ class LearningCurve(L.Callback):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.cpu_s = float(state.get("cpu_s", 0.0))
         self._t0 = time.process_time()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if self.max_cpu_minutes is not None and self._now() >= 60.0 * self.max_cpu_minutes and not trainer.should_stop:
+            log.info("CPU budget of %.1f minutes used: stopping after this batch", self.max_cpu_minutes)
+            trainer.should_stop = True
 
     def on_validation_end(self, trainer, pl_module) -> None:
         if trainer.sanity_checking or trainer.global_rank != 0 or trainer.state.fn != "fit":
@@ -110,3 +119,33 @@ def plot_curves(runs: dict[str, list[dict]], path: Path, keys=DEFAULT_PLOT) -> P
     plt.close(fig)
     atomic_write_bytes(Path(path), buf.getvalue())
     return Path(path)
+
+
+def main(argv=None) -> int:
+    """``python -m pix2pix.learning_curve --out OUT label=RUN_DIR ...``: the runs' curves in one
+    figure (``OUT.png``) and their records in one file (``OUT.json``)."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m pix2pix.learning_curve", description=main.__doc__)
+    ap.add_argument("runs", nargs="+", help="label=run directory (holding learning_curve.json)")
+    ap.add_argument("--out", required=True, help="output path without suffix")
+    ap.add_argument("--metrics", nargs="*", default=list(DEFAULT_PLOT))
+    a = ap.parse_args(argv)
+    runs = {}
+    for item in a.runs:
+        label, _, d = item.partition("=")
+        path = Path(d) / "learning_curve.json"
+        if not path.is_file():
+            print(f"pix2pix.learning_curve: error: {path} not found", file=sys.stderr)
+            return 2
+        runs[label] = json.loads(path.read_text())["records"]
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out.with_suffix(".json"), (json.dumps({"runs": runs}, indent=1) + "\n").encode())
+    plot_curves(runs, out.with_suffix(".png"), a.metrics)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
