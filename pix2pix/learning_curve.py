@@ -28,8 +28,8 @@ log = logging.getLogger(__name__)
 __all__ = ["LearningCurve", "plot_curves"]
 
 #: what the figure shows by default: per-view errors, the fusion's measures
-DEFAULT_PLOT = ("val/depth_err", "val/normal_err_deg", "val/probe_spread", "val/probe_trusted", "val/probe_fused_err",
-                "val/nll")
+DEFAULT_PLOT = ("val/depth_err", "val/normal_err_deg", "val/probe_spread_median", "val/probe_trusted",
+                "val/probe_fused_err_median", "val/nll")
 
 
 class LearningCurve(L.Callback):

@@ -233,6 +233,7 @@ class Pix2PixModule(L.LightningModule):
         self.data_info: dict[str, Any] = {}
         self._val_sums: dict[str, torch.Tensor] = {}
         self._val_grid: tuple[torch.Tensor, ...] | None = None
+        self._probe_values: dict[str, list[torch.Tensor]] = {}
         self._throughput = [0, 0.0]  # images, seconds in this epoch's training steps
         if init_from:
             self.warm_start = load_generator_weights(generator, init_from)
@@ -394,6 +395,7 @@ class Pix2PixModule(L.LightningModule):
     def on_validation_epoch_start(self) -> None:
         self._val_sums = {}
         self._val_grid = None
+        self._probe_values: dict[str, list[torch.Tensor]] = {}
 
     def _accumulate(self, key: str, value: torch.Tensor, weight: float) -> None:
         v = value.detach().double() * weight
@@ -446,6 +448,10 @@ class Pix2PixModule(L.LightningModule):
                 self._accumulate(f"probe:{prefix}fused_err", t["mean"].abs().sum(), 1.0)
                 self._accumulate(f"probe:{prefix}trusted", (t["spread"] <= s0).double().sum(), 1.0)
                 self._accumulate(f"probe:{prefix}n", torch.tensor(n, device=out.device), 1.0)
+                # medians need the values (the fusion reports its spread's median; means are
+                # dominated by silhouette probes)
+                for k, v in (("spread", t["spread"]), ("fused_err", t["mean"].abs())):
+                    self._probe_values.setdefault(prefix + k, []).append(v.detach().double().cpu())
         k = self.hparams.num_grid_images
         if k > 0 and (self._val_grid is None or self._val_grid[0].shape[0] < k):
             take = (noisy[:k], out[:k], clean[:k])
@@ -476,6 +482,10 @@ class Pix2PixModule(L.LightningModule):
                 n = probe[prefix + "n"].clamp_min(1)
                 for k in ("spread", "fused_err", "trusted"):
                     means[f"probe_{prefix}{k}"] = float(probe[prefix + k] / n)
+                for k in ("spread", "fused_err"):  # this process's probes (not reduced across ranks)
+                    vals = self._probe_values.get(prefix + k)
+                    if vals:
+                        means[f"probe_{prefix}{k}_median"] = float(torch.cat(vals).median())
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
         bad = sorted(k for k in ("l1", "smape", "noisy_l1", "noisy_smape") if not np.isfinite(means[k]))
