@@ -192,7 +192,9 @@ class Pix2PixModule(L.LightningModule):
             and of the mean |offset| the views agree on (what the fusion would move a point on
             the clean surface by); both in bounding-box diagonals.
         agree_tau: how far (bbox diagonals) the clean render's surface may be from a probe for
-            the probe to count as seen; agree_min_views: views a probe needs.
+            the probe to count as seen; agree_min_views: views a probe needs; agree_cap: each
+            probe's spread and |mean offset| are clamped at this many bbox diagonals in the loss
+            (None: not clamped), so that the few probes at occlusion edges do not dominate it.
     """
 
     def __init__(
@@ -220,6 +222,7 @@ class Pix2PixModule(L.LightningModule):
         lambda_fused: float = 0.0,
         agree_tau: float = 0.003,
         agree_min_views: int = 3,
+        agree_cap: float | None = None,
     ):
         super().__init__()
         if lr_schedule not in ("constant", "linear"):
@@ -328,7 +331,11 @@ class Pix2PixModule(L.LightningModule):
         if (lam_a > 0 or lam_f > 0) and has_multiview(batch):
             terms = self._agreement(l1_image, clean, noisy, batch)
             if terms is not None:
-                spread, fused = terms["spread"].mean(), terms["mean"].abs().mean()
+                cap = self.hparams.get("agree_cap")
+                sp, fu = terms["spread"], terms["mean"].abs()
+                if cap:  # probes beyond it (occlusion edges, silhouettes) stop pulling: the bulk counts
+                    sp, fu = sp.clamp_max(float(cap)), fu.clamp_max(float(cap))
+                spread, fused = sp.mean(), fu.mean()
                 loss_g = loss_g + lam_a * spread + lam_f * fused
                 logs["train/probe_spread"] = spread.detach()
                 logs["train/probe_fused_err"] = fused.detach()
