@@ -131,3 +131,33 @@ def test_uncertainty_head_exports_a_second_output_the_reference_passes_on(tmp_pa
     plain = PlanesGenerator(ngf=4, n_blocks=1).eval()
     p2 = export_onnx(plain, tmp_path / "p.onnx", meta, example_size=(32, 32))
     assert not OnnxDenoiser(p2).predicts_uncertainty and OnnxReference(p2).last_uncertainty is None
+
+
+def test_cascade_cache_runs_the_jobs_classical_stage_and_resumes(clouds, tmp_path):
+    """python -m experiments.denoising.cascade: one item per chosen shape and draw, the refined
+    cloud nearer the clean one than the noisy draw, a manifest the on-the-fly data reads, and a
+    rerun that remakes nothing; another seed into the same folder is refused."""
+    import numpy as np
+
+    from data_prep.cascade_cache import load_cascade_item, read_cascade_manifest
+    from data_prep.clouds import load_cloud, read_clouds_manifest
+    from data_prep.sampling import noisy_copy
+    from dss.metrics import evaluate
+    from experiments.denoising.cascade import main
+
+    args = ["--data", str(clouds), "--out", str(tmp_path / "c"), "--per-family", "1", "--val-per-family", "0",
+            "--noise", "0.01", "0.01", "optimizer.cycles=2", "image_size=64", "views=4"]
+    assert main(args) == 0
+    man = read_cascade_manifest(tmp_path / "c")
+    assert len(man["items"]) == 2 and {e["split"] for e in man["items"]} == {"train"}
+    shapes = {s["shape_id"]: s for s in read_clouds_manifest(clouds)["shapes"]}
+    for e in man["items"]:
+        pts, nrm = load_cascade_item(tmp_path / "c", e)
+        clean, _ = load_cloud(clouds, shapes[e["shape_id"]])
+        assert pts.shape == clean.shape and np.isfinite(pts).all() and np.allclose(np.linalg.norm(nrm, axis=1), 1, atol=1e-3)
+        noisy = noisy_copy(clean, e["noise_std"], e["noise_seed"])
+        assert evaluate(pts, clean).chamfer < evaluate(noisy, clean).chamfer
+    stamp = [(tmp_path / "c" / e["file"]).stat().st_mtime_ns for e in man["items"]]
+    assert main(args) == 0
+    assert [(tmp_path / "c" / e["file"]).stat().st_mtime_ns for e in man["items"]] == stamp
+    assert main([*args[:-3], "--seed", "1", *args[-3:]]) == 2
