@@ -36,9 +36,9 @@ CLOUDS_FORMAT = "dss-clouds/1"
 
 def _cloud_arrays(shape, pc: PrepConfig) -> list[tuple[str, np.ndarray]]:
     from .sampling import poisson_disk
-    from .shapes import make_shape
+    from .shards import shape_mesh
 
-    mesh = make_shape(shape.family, shape.seed, pc.resolution)
+    mesh = shape_mesh(shape, pc)
     sample = poisson_disk(mesh, pc.num_points, shape.seed, pc.init_factor)
     return [("points", np.ascontiguousarray(sample.points, np.float32)),
             ("mesh_normals", np.ascontiguousarray(sample.normals, np.float16))]
@@ -82,7 +82,8 @@ def generate_clouds(pc: PrepConfig, spec: RenderSpec, out_dir, overwrite: bool =
                 stats["shapes_written"] += 1
             stats["bytes"] += len(data)
             shapes.append({"shape_id": shape.shape_id, "family": shape.family, "seed": shape.seed,
-                           "split": shape.split, "file": rel, "sha256": hashlib.sha256(data).hexdigest()})
+                           "split": shape.split, "file": rel, "sha256": hashlib.sha256(data).hexdigest(),
+                           **({"mesh": shape.mesh} if shape.mesh else {})})
     finally:
         torch.set_num_threads(prev)
     manifest = {

@@ -33,7 +33,7 @@ import yaml
 log = logging.getLogger(__name__)
 
 __all__ = ["SPLIT_FILE", "DEFAULT_ROOT", "RealDataError", "load_split", "read_off", "check_mesh",
-           "install_real", "read_manifest", "real_cases"]
+           "install_real", "read_manifest", "real_cases", "load_training_mesh", "resolve_root"]
 
 SPLIT_FILE = Path(__file__).with_name("real_split.yaml")
 #: where ``dss-data real`` installs the meshes (relative to the repository root)
@@ -353,3 +353,38 @@ def real_cases(groups, root: str | os.PathLike = DEFAULT_ROOT) -> tuple[list[dic
     order = {g: i for i, g in enumerate(groups)}
     cases.sort(key=lambda c: order[c["group"]])
     return cases, skipped
+
+
+def resolve_root(root: str | os.PathLike = DEFAULT_ROOT) -> Path:
+    """``root`` as given when absolute, else relative to the repository root (where ``dss-data
+    real`` installs ``data/real``), whatever the working directory."""
+    p = Path(root).expanduser()
+    return p if p.is_absolute() else Path(__file__).resolve().parents[1] / p
+
+
+def load_training_mesh(name: str, root: str | os.PathLike = DEFAULT_ROOT, trainable=("tuning",)):
+    """The installed real mesh ``name`` for training data (``dss-prep shapes.real``), as a
+    :class:`data_prep.shapes.Mesh` normalised to a unit bounding-box diagonal.
+
+    Only meshes of the ``trainable`` groups of the split file are handed out: a held-out or open
+    mesh (or one the split does not list) raises :class:`RealDataError`, so that no
+    configuration can render it for training. The file must match the manifest's sha256."""
+    from dss.metrics import load_mesh
+
+    from .shapes.meshing import Mesh, normalize_mesh
+
+    groups = load_split()["groups"]
+    group = next((g for g, names in groups.items() if name in names), None)
+    if group not in trainable:
+        raise RealDataError(f"real mesh {name!r} is in group {group!r} of {SPLIT_FILE.name}: only "
+                            f"{list(trainable)} meshes may be rendered for training")
+    root = resolve_root(root)
+    man = read_manifest(root)
+    entry = next((m for m in man["meshes"] if m["name"] == name), None)
+    path = root / (entry or {}).get("file", f"{name}.ply")
+    if entry is None or entry.get("status") != "ok" or not path.is_file():
+        raise RealDataError(f"real mesh {name!r} is not installed in {root}: run `dss-data real`")
+    if entry.get("sha256") and _sha256(path) != entry["sha256"]:
+        raise RealDataError(f"{path}: does not match its manifest's sha256; reinstall with `dss-data real --force`")
+    v, f = load_mesh(str(path))
+    return normalize_mesh(Mesh(np.asarray(v, np.float64), np.asarray(f, np.int64)))

@@ -57,6 +57,12 @@ __all__ = [
     "npz_bytes",
     "generate_dataset",
     "shard_is_done",
+    "shape_mesh",
+    "shape_noise",
+    "nominal_noise",
+    "real_mesh_names",
+    "REAL_FAMILY",
+    "TRAINABLE_REAL_GROUPS",
 ]
 
 FORMAT = "dss-pairs/1"
@@ -92,8 +98,32 @@ class PrepConfig:
     noise_levels: tuple[float, ...] = (0.003, 0.01)
     views_per_shape: int = 16
     shapes_per_shard: int = 4
+    #: groups of data_prep/real_split.yaml whose meshes join the generated shapes (only
+    #: TRAINABLE_REAL_GROUPS: the held-out and open shapes are never rendered for training)
+    real_groups: tuple[str, ...] = ()
+    #: Poisson-disk samplings per real mesh (each its own seed; all in the mesh's split)
+    real_repeats: int = 1
+    #: where ``dss-data real`` installed them (relative: the repository root); not part of the data
+    real_root: str = "data/real"
+    #: (lo, hi): each shape's noise std drawn log-uniformly from this range (fractions of the
+    #: bbox diagonal) instead of one shard set per ``noise_levels`` entry; the shards hold one
+    #: slot whose nominal level is the range's geometric mean
+    noise_range: tuple[float, float] | None = None
 
     def __post_init__(self):
+        if self.noise_range is not None:
+            lo, hi = (float(x) for x in self.noise_range)
+            if not (0 < lo < hi and np.isfinite(hi)):
+                raise PrepConfigError(f"noise_range must be [lo, hi] with 0 < lo < hi, got {list(self.noise_range)}")
+            object.__setattr__(self, "noise_range", (lo, hi))
+            object.__setattr__(self, "noise_levels", (nominal_noise(lo, hi),))
+        object.__setattr__(self, "real_groups", tuple(str(g) for g in self.real_groups))
+        bad = [g for g in self.real_groups if g not in TRAINABLE_REAL_GROUPS]
+        if bad:
+            raise PrepConfigError(f"shapes.real.groups: {bad} may not be rendered for training (held-out and open "
+                                  f"shapes are for evaluation only); allowed: {list(TRAINABLE_REAL_GROUPS)}")
+        if int(self.real_repeats) < 1:
+            raise PrepConfigError(f"shapes.real.repeats must be >= 1, got {self.real_repeats}")
         try:
             fams = tuple(resolve_families(list(self.families)))
         except UnknownFamilyError as e:
@@ -129,7 +159,7 @@ class PrepConfig:
         shapes = cfg.get("shapes", {}) or {}
         splits = cfg.get("splits", {}) or {}
         sampling = cfg.get("sampling", {}) or {}
-        for name, block, keys in (("shapes", shapes, {"families", "per_family", "resolution"}),
+        for name, block, keys in (("shapes", shapes, {"families", "per_family", "resolution", "real"}),
                                   ("splits", splits, {"val", "test"}),
                                   ("sampling", sampling, {"num_points", "init_factor", "normals_k", "normals_orient"})):
             bad = set(block) - keys
@@ -141,6 +171,15 @@ class PrepConfig:
         levels = cfg.get("noise_levels", [0.003, 0.01])
         if isinstance(levels, int | float):
             levels = [levels]
+        real = shapes.get("real") or {}
+        bad = set(real) - {"groups", "repeats", "root"}
+        if bad:
+            raise PrepConfigError(f"shapes.real: unknown keys {sorted(bad)}; known: ['groups', 'repeats', 'root']")
+        real_groups = real.get("groups") or []
+        real_groups = [real_groups] if isinstance(real_groups, str) else list(real_groups)
+        noise_range = cfg.get("noise_range")
+        if noise_range is not None and (isinstance(noise_range, str) or len(noise_range) != 2):
+            raise PrepConfigError(f"noise_range must be [lo, hi], got {noise_range!r}")
         try:
             return cls(
                 seed=int(cfg.get("seed", 0)),
@@ -156,6 +195,10 @@ class PrepConfig:
                 noise_levels=tuple(levels),
                 views_per_shape=int(cfg.get("views_per_shape", 16)),
                 shapes_per_shard=int(cfg.get("shapes_per_shard", 4)),
+                real_groups=tuple(real_groups),
+                real_repeats=int(real.get("repeats", 1)),
+                real_root=str(real.get("root", "data/real")),
+                noise_range=None if noise_range is None else tuple(float(x) for x in noise_range),
             )
         except (TypeError, ValueError) as e:
             if isinstance(e, PrepConfigError):
@@ -183,14 +226,72 @@ def package_version() -> str:
         return "0.1.0"
 
 
+#: real_split.yaml groups whose meshes ``dss-prep`` may render for training
+TRAINABLE_REAL_GROUPS = ("tuning",)
+#: PrepConfig fields that join the fingerprint only when set (datasets made before they existed
+#: keep their fingerprint); real_root is a path, never part of it
+_OPTIONAL_FIELDS = {"real_groups": (), "real_repeats": 1, "noise_range": None}
+
+
+def nominal_noise(lo: float, hi: float) -> float:
+    """The nominal level of a noise range: its geometric mean (rounded to 6 digits)."""
+    return round(float(np.sqrt(float(lo) * float(hi))), 6)
+
+
 def fingerprint(pc: PrepConfig, spec: RenderSpec) -> str:
     """sha256 of everything that determines the data (not the backend, workers or paths)."""
-    blob = json.dumps({"format": FORMAT, "generator_version": GENERATOR_VERSION, "prep": asdict(pc),
+    prep = asdict(pc)
+    prep.pop("real_root")
+    for k, default in _OPTIONAL_FIELDS.items():
+        if prep[k] == default or (k == "real_groups" and not prep[k]):
+            prep.pop(k)
+    if "real_groups" in prep:  # the mesh names they hold (data_prep/real_split.yaml)
+        prep["real_meshes"] = real_mesh_names(pc)
+    blob = json.dumps({"format": FORMAT, "generator_version": GENERATOR_VERSION, "prep": prep,
                        "render": spec.to_dict(include_backend=False)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
+def real_mesh_names(pc: PrepConfig) -> list[str]:
+    """The real meshes of ``pc.real_groups`` (data_prep/real_split.yaml), in the split's order."""
+    from .real_meshes import load_split
+
+    groups = load_split()["groups"]
+    names = []
+    for g in pc.real_groups:
+        if g not in groups:
+            raise PrepConfigError(f"shapes.real.groups: {g!r} is not a group of data_prep/real_split.yaml")
+        names += [n for n in groups[g] if n not in names]
+    return names
+
+
+def shape_noise(pc: PrepConfig, shape: ShapeItem, level: float) -> float:
+    """The noise std of ``shape``'s noisy cloud in the shard slot of ``level``: ``level`` itself,
+    or with a ``noise_range`` a log-uniform draw from it, seeded by the shape."""
+    if pc.noise_range is None:
+        return float(level)
+    lo, hi = pc.noise_range
+    u = np.random.default_rng(_seed_int(shape.seed, 3)).random()
+    return float(np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo))))
+
+
+def shape_mesh(shape: ShapeItem, pc: PrepConfig):
+    """The mesh of a plan's shape: a generated family's, or an installed real mesh (only of
+    :data:`TRAINABLE_REAL_GROUPS`), normalised to a unit bounding-box diagonal."""
+    if shape.family == REAL_FAMILY:
+        from .real_meshes import load_training_mesh
+
+        return load_training_mesh(shape.mesh, pc.real_root)
+    from .shapes import make_shape
+
+    return make_shape(shape.family, shape.seed, pc.resolution)
+
+
 # ----------------------------------------------------------------------------- plan
+
+#: the family name of the real meshes in a plan (shape ids ``real-<mesh>-<repeat>``)
+REAL_FAMILY = "real"
+
 
 @dataclass
 class ShapeItem:
@@ -200,6 +301,7 @@ class ShapeItem:
     seed: int
     split: str
     views: list[View]
+    mesh: str | None = None  # the real mesh's name (family "real")
 
 
 @dataclass
@@ -289,6 +391,9 @@ def build_plan(pc: PrepConfig, spec: RenderSpec) -> Plan:
         item = ShapeItem(f"{fam}-{i:04d}", fam, i, s, split, views)
         by_split[split].append(item)
         shapes.append(item)
+    for item in _real_items(pc, spec):
+        by_split[item.split].append(item)
+        shapes.append(item)
     tasks: list[Task] = []
     pair_id = 0
     L = len(pc.noise_levels)
@@ -304,6 +409,28 @@ def build_plan(pc: PrepConfig, spec: RenderSpec) -> Plan:
                 pair_id += n
             tasks.append(t)
     return Plan(pc, spec, shapes, tasks, fingerprint(pc, spec))
+
+
+def _real_items(pc: PrepConfig, spec: RenderSpec) -> list[ShapeItem]:
+    """The real meshes' shapes: split by mesh (all repeats of a mesh in one split), ``val``
+    getting ``round(val_fraction x meshes)`` of them (at least one when asked for), the rest
+    ``train``; no real mesh goes to ``test`` (the generated test split is what the denoising
+    table evaluates, and real held-out meshes are evaluated by dss-real-bench)."""
+    if not pc.real_groups:
+        return []
+    names = real_mesh_names(pc)
+    order = np.random.default_rng(_seed_int(pc.seed, _fam_code(REAL_FAMILY), 999)).permutation(len(names))
+    n_val = int(round(pc.val_fraction * len(names)))
+    n_val = max(n_val, 1) if pc.val_fraction > 0 and len(names) > 1 else n_val
+    val = {names[i] for i in order[:n_val]}
+    items = []
+    for mi, name in enumerate(names):
+        for r in range(int(pc.real_repeats)):
+            s = shape_seed(pc.seed, f"{REAL_FAMILY}:{name}", r)
+            views = spec.sample_views(pc.views_per_shape, np.random.default_rng(_seed_int(s, 2)))
+            items.append(ShapeItem(f"{REAL_FAMILY}-{name}-{r}", REAL_FAMILY, mi * int(pc.real_repeats) + r, s,
+                                   "val" if name in val else "train", views, mesh=name))
+    return items
 
 
 # ----------------------------------------------------------------------------- bytes on disk
@@ -419,7 +546,6 @@ def _run_task(job: _Job) -> dict:
     """Generate the missing shards of one task. Returns counts and stage timings (seconds)."""
     from .pairs import render_pairs, render_views
     from .sampling import noisy_copy, poisson_disk, with_normals
-    from .shapes import make_shape
 
     pc, spec, root = job.config, job.spec, Path(job.root)
     pending = [s for s in job.task.shards if job.force or shard_is_done(root, s, job.fingerprint, job.verify) is None]
@@ -428,10 +554,10 @@ def _run_task(job: _Job) -> dict:
     if not pending:
         return res
     H, W = spec.image_size
-    bufs = {s.path: {"noisy": [], "clean": [], "mask": []} for s in pending}
+    bufs = {s.path: {"noisy": [], "clean": [], "mask": [], "noise_std": []} for s in pending}
     for shape in job.task.shapes:
         t0 = time.perf_counter()
-        mesh = make_shape(shape.family, shape.seed, pc.resolution)
+        mesh = shape_mesh(shape, pc)
         t1 = time.perf_counter()
         sample = poisson_disk(mesh, pc.num_points, shape.seed, pc.init_factor)
         clean_pts, mesh_normals = sample.points, sample.normals
@@ -445,7 +571,8 @@ def _run_task(job: _Job) -> dict:
         res["t_render"] += time.perf_counter() - t3
         for s in pending:
             t0 = time.perf_counter()
-            noisy_pts = noisy_copy(clean_pts, s.noise_level, noise_seed(shape.seed, s.level_index))
+            std = shape_noise(pc, shape, s.noise_level)
+            noisy_pts = noisy_copy(clean_pts, std, noise_seed(shape.seed, s.level_index))
             t1 = time.perf_counter()
             noisy = with_normals(noisy_pts, pc.normals_k, pc.normals_orient, mesh_normals)
             t2 = time.perf_counter()
@@ -458,12 +585,15 @@ def _run_task(job: _Job) -> dict:
             b["noisy"].append(pr["noisy"].astype(np.float16))
             b["clean"].append(pr["clean"].astype(np.float16))
             b["mask"].append(pr["mask"])
+            b["noise_std"].append(np.full(len(shape.views), std, np.float32))
     for s in pending:
         t0 = time.perf_counter()
         b = bufs.pop(s.path)
         arrays = [("noisy", np.concatenate(b["noisy"])), ("clean", np.concatenate(b["clean"])),
                   ("mask", np.concatenate(b["mask"])),
                   ("pair_id", np.arange(s.first_pair_id, s.first_pair_id + s.num_pairs, dtype=np.int64))]
+        if pc.noise_range is not None:  # each shape's own draw (the slot's level is nominal)
+            arrays.append(("noise_std", np.concatenate(b["noise_std"])))
         if arrays[0][1].shape != (s.num_pairs, H, W, 3):  # a renderer that ignored the spec
             raise RuntimeError(f"{s.path}: got images {arrays[0][1].shape}, expected ({s.num_pairs}, {H}, {W}, 3)")
         _write_shard(root, s, arrays, job.fingerprint)
@@ -503,7 +633,10 @@ def manifest_header(plan: Plan, fmt: str, versions: Mapping[str, Any] = (), conf
                    "resolution": pc.resolution, "num_points": pc.num_points, "init_factor": pc.init_factor,
                    "normals_k": pc.normals_k, "normals_orient": pc.normals_orient,
                    "views_per_shape": pc.views_per_shape, **dict(config_extra),
-                   "splits": {"val": pc.val_fraction, "test": pc.test_fraction}},
+                   "splits": {"val": pc.val_fraction, "test": pc.test_fraction},
+                   **({"real": {"groups": list(pc.real_groups), "repeats": pc.real_repeats,
+                                "meshes": real_mesh_names(pc)}} if pc.real_groups else {})},
+        **({"noise_range": list(pc.noise_range)} if pc.noise_range is not None else {}),
     }
 
 
@@ -521,7 +654,9 @@ def build_manifest(plan: Plan, markers: Mapping[str, dict]) -> dict:
                     pairs.append({"pair_id": pid, "shape_id": shape.shape_id, "family": shape.family,
                                   "seed": shape.seed, "noise_level": s.noise_level, "split": s.split,
                                   "shard": s.path, "index": pid - s.first_pair_id, "view": vi,
-                                  "camera": view.to_dict(focal)})
+                                  "camera": view.to_dict(focal),
+                                  **({"noise_std": shape_noise(pc, shape, s.noise_level)}
+                                     if pc.noise_range is not None else {})})
                     pid += 1
     split_stats = {sp: {"shapes": sum(1 for x in plan.shapes if x.split == sp),
                         "pairs": sum(s.num_pairs for s in plan.shards if s.split == sp)} for sp in SPLITS}
@@ -530,7 +665,8 @@ def build_manifest(plan: Plan, markers: Mapping[str, dict]) -> dict:
                           {"shapes_per_shard": pc.shapes_per_shard}),
         "splits": split_stats,
         "num_pairs": plan.num_pairs,
-        "shapes": [{"shape_id": x.shape_id, "family": x.family, "seed": x.seed, "split": x.split} for x in plan.shapes],
+        "shapes": [{"shape_id": x.shape_id, "family": x.family, "seed": x.seed, "split": x.split,
+                    **({"mesh": x.mesh} if x.mesh else {})} for x in plan.shapes],
         "shards": shards,
         "pairs": pairs,
     }

@@ -39,6 +39,19 @@ input's renders pulled the points to their front envelope (Chamfer above 1). Per
 The displacement is the closed-form minimiser, per point, of the squared depth residuals
 against the references along the point's normal: a Gauss-Newton step of a point-wise image
 loss, where the paper's image loss acts on blended pixels.
+
+Two options serve learned references (off by default, the behaviour above unchanged):
+
+- ``uncertainty``: a reference may return, with its planes, a per-pixel predicted scale of its
+  inverse depth's error (a network trained with a Laplace negative log-likelihood,
+  :class:`pix2pix.networks.PlanesGenerator` with ``uncertainty``). Each observation then gets
+  the predicted std of its offset along the normal, ``sigma``; ``weight``: the views are
+  weighted by ``1 / sigma^2`` instead of ``cos^2``; ``trust``: the consistency uses the
+  predicted variance in place of the spread, ``c = s0^2 / (s0^2 + mean sigma^2)``; ``both``:
+  the ``1 / sigma^2`` weights and the product of the spread's and the prediction's consistency.
+- ``reference_cloud: refined`` (the cascade, read by :func:`dss.pipeline.refine_with_reference`):
+  the fusion's references are made from renders of the cloud after the DSS cycles and the
+  outlier projection (with :func:`cascade_normals`), not of the input.
 """
 
 from __future__ import annotations
@@ -55,10 +68,19 @@ from .cameras import Cameras
 log = logging.getLogger(__name__)
 
 __all__ = ["FusionConfig", "PlaneObservations", "FusionSums", "FusionResult", "observe_planes", "fill_from_trusted",
-           "fuse_planes"]
+           "fuse_planes", "cascade_normals", "UNCERTAINTY_MODES", "REFERENCE_CLOUDS"]
 
-#: ``cameras -> (planes (V, H, W, 3), coverage mask (V, H, W) bool)``: the reference in the planes channel
-PlaneReference = Callable[[Cameras], tuple[torch.Tensor, torch.Tensor]]
+#: ``cameras -> (planes (V, H, W, 3), coverage mask (V, H, W) bool)``: the reference in the planes
+#: channel; it may return a third tensor (V, H, W), the predicted Laplace scale of each pixel's
+#: inverse depth (1 / bbox diagonals), read with ``FusionConfig.uncertainty``
+PlaneReference = Callable[[Cameras], tuple]
+
+#: FusionConfig.uncertainty: how a reference's predicted per-pixel uncertainty is used
+UNCERTAINTY_MODES = ("off", "weight", "trust", "both")
+#: FusionConfig.reference_cloud: what the fusion's references are rendered from
+REFERENCE_CLOUDS = ("input", "refined")
+#: the smallest predicted offset std, in pixel footprints (a network's scale can collapse to 0)
+SIGMA_MIN_PX = 0.02
 
 
 @dataclass
@@ -79,6 +101,12 @@ class FusionConfig:
         image_normals: also return each point's normal as the references show it (the weighted
             mean of its views' plane normals, where it moved with consistency >= 0.5).
         fill_k, fill_min_weight: step 5 of the module docstring (``fill_k = 0``: off).
+        uncertainty: ``off`` | ``weight`` | ``trust`` | ``both``: how a reference's predicted
+            per-pixel uncertainty is used (module docstring); not ``off`` needs a reference that
+            returns it.
+        reference_cloud: ``input`` (the references are made from the input's renders, as in the
+            DSS cycles) | ``refined`` (the cascade: from renders of the cloud the cycles and the
+            outlier projection left; :func:`dss.pipeline.refine_with_reference`).
     """
 
     passes: int = 4
@@ -100,8 +128,15 @@ class FusionConfig:
     # interpolated in log noise, dss.schedule) sets it from the cloud's noise when given
     weight: float = 1.0
     weight_by_noise: dict | None = None
+    uncertainty: str = "off"
+    reference_cloud: str = "input"
 
     def __post_init__(self):
+        if self.uncertainty not in UNCERTAINTY_MODES:
+            raise ValueError(f"fusion.uncertainty must be one of {list(UNCERTAINTY_MODES)}, got {self.uncertainty!r}")
+        if self.reference_cloud not in REFERENCE_CLOUDS:
+            raise ValueError(f"fusion.reference_cloud must be one of {list(REFERENCE_CLOUDS)}, "
+                             f"got {self.reference_cloud!r}")
         if self.fill_k < 0 or self.fill_min_weight <= 0:
             raise ValueError(f"fusion.fill_k must be >= 0 and fill_min_weight > 0, got {self.fill_k}, "
                              f"{self.fill_min_weight}")
@@ -144,6 +179,8 @@ class PlaneObservations:
         weight: (V, N) ``cos^2`` of the ray to the normal (0 where not ``ok``).
         footprint: (V, N) world size of one pixel at the point's depth.
         normal: (V, N, 3) the pixel's plane normal in world space, signed like the point's normal.
+        sigma: (V, N) the predicted std of ``offset`` (bbox diagonals) where the reference gave
+            an uncertainty map, else None.
     """
 
     offset: torch.Tensor
@@ -151,13 +188,17 @@ class PlaneObservations:
     weight: torch.Tensor
     footprint: torch.Tensor
     normal: torch.Tensor
+    sigma: torch.Tensor | None = None
 
 
 def observe_planes(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras, planes: torch.Tensor,
                    mask: torch.Tensor, tau: float, max_angle_deg: float = 45.0,
-                   min_cos: float = 0.2) -> PlaneObservations:
+                   min_cos: float = 0.2, uncertainty: torch.Tensor | None = None) -> PlaneObservations:
     """Observations of ``points`` (N, 3) with unit ``normals`` (N, 3) in a ``planes`` render
-    (V, H, W, 3) with coverage ``mask`` (V, H, W) from ``cameras``; see :class:`PlaneObservations`."""
+    (V, H, W, 3) with coverage ``mask`` (V, H, W) from ``cameras``; see :class:`PlaneObservations`.
+    ``uncertainty`` (V, H, W): the predicted Laplace scale ``b`` of each pixel's inverse depth
+    (1 / bbox diagonals); the offset's std is then ``sqrt(2) b z_ref^2 |p . n| / z`` (the
+    offset's derivative with respect to the inverse depth)."""
     V, H, W, _ = planes.shape
     pc = cameras.world_to_camera(points)  # (V, N, 3)
     z = pc[..., 2]
@@ -190,20 +231,39 @@ def observe_planes(points: torch.Tensor, normals: torch.Tensor, cameras: Cameras
     footprint = zs / f
     n_world = torch.einsum("vji,vnj->vni", cameras.R.to(n_ref), n_ref)
     n_world = torch.where((n_world * normals[None]).sum(-1, keepdim=True) < 0, -n_world, n_world)
-    return PlaneObservations(offset, ok, weight, footprint, n_world)
+    sigma = None
+    if uncertainty is not None:
+        b = uncertainty.to(pc)[vi, pyc, pxc]
+        sigma = math.sqrt(2.0) * b * z_ref * z_ref * (pc * n_cam).sum(-1).abs() / zs
+        sigma = torch.where(ok, sigma.clamp_min(0) + SIGMA_MIN_PX * footprint, torch.ones_like(sigma))
+    return PlaneObservations(offset, ok, weight, footprint, n_world, sigma)
 
 
 class FusionSums:
     """Running per-point sums of observations over camera batches (float64)."""
 
-    def __init__(self, n: int, device=None):
+    def __init__(self, n: int, device=None, uncertainty: str = "off"):
         z = lambda *s: torch.zeros(*s, dtype=torch.float64, device=device)  # noqa: E731
         self.count, self.w, self.wx, self.wxx, self.ws0 = z(n), z(n), z(n), z(n), z(n)
+        self.wss = z(n)  # weighted predicted offset variance (uncertainty trust / both)
         self.wn = z(n, 3)
+        if uncertainty not in UNCERTAINTY_MODES:
+            raise ValueError(f"uncertainty must be one of {list(UNCERTAINTY_MODES)}, got {uncertainty!r}")
+        self.uncertainty = uncertainty
 
     def add(self, obs: PlaneObservations, consistency_px: float, s0_max: float = math.inf) -> None:
         """Add a batch; ``s0 = min(consistency_px x footprint, s0_max)`` per observation."""
         w = obs.weight.double()
+        if self.uncertainty != "off":
+            if obs.sigma is None:
+                raise ValueError(f"fusion.uncertainty={self.uncertainty} needs a reference that predicts its "
+                                 "uncertainty (a model trained with it); this one returns planes only")
+            var = obs.sigma.double() ** 2
+            if self.uncertainty in ("weight", "both"):
+                # inverse-variance weights, scaled so that an observation of one pixel footprint's
+                # std weighs 1 (only ratios within a point matter)
+                w = torch.where(obs.ok, (obs.footprint.double() ** 2) / var, torch.zeros_like(var))
+            self.wss += (w * torch.where(obs.ok, var, torch.zeros_like(var))).sum(0)
         x = obs.offset.double()
         self.count += obs.ok.sum(0).double()
         self.w += w.sum(0)
@@ -222,7 +282,11 @@ class FusionSums:
         var = (self.wxx / w - m * m).clamp_min(0) * n / (n - 1).clamp_min(1)
         s0sq = self.ws0 / w
         enough = (n >= min_views) & (self.w > 0)
-        cons = torch.where(enough, s0sq / (s0sq + var).clamp_min(1e-300), torch.zeros_like(m))
+        cons = s0sq / (s0sq + var).clamp_min(1e-300)
+        if self.uncertainty in ("trust", "both"):
+            pred = s0sq / (s0sq + self.wss / w).clamp_min(1e-300)  # the predicted variance as the spread
+            cons = pred if self.uncertainty == "trust" else cons * pred
+        cons = torch.where(enough, cons, torch.zeros_like(m))
         normal = torch.nn.functional.normalize(self.wn, dim=1)
         return {"offset": torch.where(self.w > 0, m, torch.zeros_like(m)), "spread": var.sqrt(),
                 "consistency": cons, "count": n, "normal": normal}
@@ -256,6 +320,14 @@ def _pca_normals(points: torch.Tensor, like: torch.Tensor, k: int) -> torch.Tens
 
     n = estimate_normals(points, k=k, orient="none").to(points.device, points.dtype)
     return torch.where((n * like).sum(1, keepdim=True) < 0, -n, n)
+
+
+def cascade_normals(points: torch.Tensor, like: torch.Tensor, k: int = 16) -> torch.Tensor:
+    """The normals (N, 3) a refined cloud ``points`` (N, 3) is rendered with for the cascade's
+    references (``reference_cloud: refined``): a PCA fit over ``k`` neighbours, signed like
+    ``like`` (N, 3). Training data for a cascade model renders its inputs with this function too
+    (:mod:`experiments.denoising.cascade`), so that the model sees at training what the job gives it."""
+    return _pca_normals(points.float(), like.float(), int(k))
 
 
 def fill_from_trusted(points: torch.Tensor, normals: torch.Tensor, consistency: torch.Tensor, k: int = 16,
@@ -311,16 +383,17 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
     for k in range(cfg.passes):
         t0 = time.perf_counter()
         n = _pca_normals(p, signs, cfg.normal_k)
-        sums = FusionSums(len(p), p.device)
+        sums = FusionSums(len(p), p.device, cfg.uncertainty)
         t_ref = 0.0
         for _ in range(cfg.batches):
             cams = sample_cameras().to(p.device)
             with torch.no_grad():
                 t1 = time.perf_counter()
-                planes, mask = reference(cams)
+                planes, mask, *extra = reference(cams)
                 t_ref += time.perf_counter() - t1
+                unc = extra[0] if extra and extra[0] is not None and cfg.uncertainty != "off" else None
                 obs = observe_planes(p, n, cams, planes.to(p), mask.to(p.device), tau, cfg.max_angle_deg,
-                                     cfg.min_cos)
+                                     cfg.min_cos, uncertainty=unc)
             sums.add(obs, cfg.consistency_px, cfg.consistency_noise * float(noise))
         est = sums.estimate(cfg.min_views)
         move = (weight * est["consistency"] * est["offset"]).float()
@@ -339,6 +412,7 @@ def fuse_planes(points: torch.Tensor, normals: torch.Tensor, reference: PlaneRef
              "consistency_mean": float(est["consistency"].mean()), "filled": float(filled.float().mean()),
              "move_mean": float(move.abs().mean()), "move_max": float(move.abs().max()),
              "spread_median": float(est["spread"][seen].median()) if bool(seen.any()) else float("nan"),
+             "trusted": float((est["consistency"] >= 0.5).double().mean()),
              "tau": tau, "seconds": time.perf_counter() - t0, "reference_seconds": t_ref}
         stats.append(s)
         log.info("plane fusion pass %d: %.0f%% of points observed, consistency %.2f, mean move %.2g (max %.2g)",

@@ -39,6 +39,10 @@ __all__ = ["refine_with_reference", "ReferenceRenderer", "ReferenceImageError", 
 ImageFn = Callable[..., torch.Tensor]
 
 
+def _identity_images(images: torch.Tensor) -> torch.Tensor:
+    return images
+
+
 class ReferenceImageError(ValueError):
     """``image_fn`` returned something that cannot be a reference (wrong shape, NaN, ...)."""
 
@@ -90,6 +94,7 @@ class ReferenceRenderer:
         self._pass_mask = _accepts(self.image_fn, "mask")
         self._pass_cameras = _accepts(self.image_fn, "cameras")
         self.last = None
+        self.last_uncertainty = None
         self.calls = 0
         self.seconds = 0.0
 
@@ -124,6 +129,11 @@ class ReferenceRenderer:
             raise ReferenceImageError("image_fn returned NaN/inf values")
         if self.keep_background:
             ref = torch.where(mask[..., None], ref, images)
+        # a generator that predicts its per-pixel uncertainty keeps the map of its latest call
+        # (V, H, W): the plane fusion may read it (FusionConfig.uncertainty)
+        unc = getattr(self.image_fn, "last_uncertainty", None)
+        self.last_uncertainty = None if unc is None else torch.as_tensor(unc).to(device=images.device,
+                                                                                dtype=images.dtype)
         self.last = (cameras, images, mask, ref)
         return ref
 
@@ -172,6 +182,11 @@ def refine_with_reference(
         fusion: after the cycles and the configured final projection of outliers,
             :func:`dss.fusion.fuse_planes` with these settings moves the points onto the
             surface the references show (needs ``shading="planes"``). None: no fusion (the paper).
+            ``fusion.reference_cloud="refined"`` (the cascade): the cycles run on the input's own
+            renders (``image_fn`` is not applied to them: the classical stage), and the fusion's
+            references are ``image_fn`` of renders of the cloud the cycles and the outlier
+            projection left, with :func:`dss.fusion.cascade_normals`; the returned renderer is
+            then the fusion's.
         fusion_cameras: ``() -> Cameras`` with ``fusion.views`` fresh views per call (required
             with ``fusion``).
         noise: the cloud's noise level (std in bbox diagonals; the fusion's depth window).
@@ -197,7 +212,10 @@ def refine_with_reference(
     home = points.device
     dev = home if device is None else torch.device(device)
     points, normals = points.to(dev), normals.to(dev)
-    ref = ReferenceRenderer(points, normals, image_fn, settings, shading, backend, keep_background)
+    cascade = fusion is not None and fusion.reference_cloud == "refined"
+    # the cascade's cycles are the classical stage: the input's own renders as references
+    ref = ReferenceRenderer(points, normals, _identity_images if cascade else image_fn, settings, shading, backend,
+                            True if cascade else keep_background)
     opt = MultiViewOptimizer(points, normals, ref, config=config, settings=settings, center=center, radius=radius,
                              shading=shading, backend=backend, callback=callback, sampler=sampler,
                              image_size=image_size)
@@ -214,9 +232,17 @@ def refine_with_reference(
     if fusion is not None:
         # after the outlier projection: the outliers it moved are then within the fusion's
         # depth window, and the fusion has the last word on every point it can see
+        fusion_ref = ref
+        if cascade:
+            from .fusion import cascade_normals
+
+            fusion_ref = ReferenceRenderer(result.points, cascade_normals(result.points, result.normals, fusion.normal_k),
+                                           image_fn, settings, shading, backend, keep_background)
+
         def plane_reference(cams: Cameras):
-            planes = ref(cams)
-            return planes, planes.abs().amax(-1) > 0  # the background plane is 0
+            planes = fusion_ref(cams)
+            # the background plane is 0; a reference that predicts its uncertainty adds it
+            return planes, planes.abs().amax(-1) > 0, fusion_ref.last_uncertainty
 
         with clock("fusion"):
             fused = fuse_planes(result.points, result.normals, plane_reference, lambda: fusion_cameras().to(dev),
@@ -235,6 +261,7 @@ def refine_with_reference(
         result.points, result.normals = projected, normals
         result.history["fusion"] = {"passes": fused.passes, "config": fused.config,
                                     "consistency_mean": float(fused.consistency.mean()),
+                                    "trusted": float((fused.consistency >= 0.5).float().mean()),
                                     "image_normals": float(fused.image_normal_mask.float().mean()),
                                     "final_projection_moved": int(moved.sum()),
                                     "weight": fusion.weight_at(float(noise))}
@@ -246,6 +273,11 @@ def refine_with_reference(
         result.points = bounded
     result.history["profile_s"] = {**result.history.get("profile_s", {}), **clock.seconds}
     result.history["profile_cpu_s"] = {**result.history.get("profile_cpu_s", {}), **clock.cpu_seconds}
+    if cascade:
+        result.history["reference_calls_cycles"] = ref.calls
+        ref_cycles_seconds = ref.seconds
+        ref = fusion_ref
+        ref.seconds += ref_cycles_seconds
     result.history["reference_calls"] = ref.calls
     result.history["reference_seconds"] = ref.seconds
     result.history["device"] = str(dev)

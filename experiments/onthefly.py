@@ -14,6 +14,19 @@ split across DDP ranks and DataLoader workers by shape, and rendered in pools of
 shapes whose views are shuffled together. Validation draws its noise and views once (epoch 0
 of its own stream), so every validation sees the same pairs.
 
+Options for learned references in the planes channel (all off by default):
+
+- ``noise_range`` [lo, hi]: every shape and epoch draws its own noise std, log-uniformly in
+  the range (a continuous range of levels; ``dss-prep prep_preset=real_planes``).
+- ``cascade``: a ``dss-cascade/1`` cache (:mod:`data_prep.cascade_cache`): the network's input is
+  the render of the cloud after dss-denoise's classical stage (the cached noisy draws of each
+  shape, one per epoch in turn), its target the clean render: what the plane fusion's
+  references see with ``fusion.reference_cloud=refined``. Only the cached shapes are used.
+- ``multiview``: each batch is ``batch_size`` views of one cloud whose crops are centred on
+  the projection of one anchor point of its surface, with the cameras and ``probes`` clean
+  points nearest the anchor (validation: full renders, probes drawn over the whole cloud), so
+  that the loss can compare the views (:mod:`pix2pix.multiview`); no flips.
+
 This module renders with ``dss`` and serves ``pix2pix``: it lives in ``experiments`` (the
 layering of DESIGN.md: ``pix2pix`` knows images, not points).
 """
@@ -39,18 +52,24 @@ __all__ = ["CloudPairStream", "OnTheFlyDataModule", "render_cloud_pairs"]
 
 def render_cloud_pairs(points: np.ndarray, mesh_normals: np.ndarray, noise: float, noise_seed: int, views, spec,
                        normals_k: int = 16, device: str | torch.device = "cpu",
-                       clean_normals: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                       clean_normals: np.ndarray | None = None,
+                       input_cloud: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Noisy and clean renders (V, H, W, 3) float32 and the mask (V, H, W) of one shape's clean
     ``points`` through ``views``: noise of std ``noise`` (bbox diagonals) from ``noise_seed``,
     PCA normals over ``normals_k`` neighbours signed by ``mesh_normals`` (dss-prep's
-    ``normals_orient: mesh``), rendered with :func:`dss.render.render` on ``device``."""
+    ``normals_orient: mesh``), rendered with :func:`dss.render.render` on ``device``.
+    ``input_cloud`` (points, normals): render this as the input ("noisy") instead (the cascade's
+    refined cloud)."""
     from data_prep.sampling import noisy_copy, with_normals
     from dss.render import render
 
     if clean_normals is None:
         clean_normals = with_normals(points, normals_k, "mesh", mesh_normals).normals
-    noisy_pts = noisy_copy(points, noise, noise_seed)
-    noisy_normals = with_normals(noisy_pts, normals_k, "mesh", mesh_normals).normals
+    if input_cloud is not None:
+        noisy_pts, noisy_normals = input_cloud
+    else:
+        noisy_pts = noisy_copy(points, noise, noise_seed)
+        noisy_normals = with_normals(noisy_pts, normals_k, "mesh", mesh_normals).normals
     cams = spec.cameras(views).to(device)
     settings = spec.render_settings()
     out = {}
@@ -61,7 +80,9 @@ def render_cloud_pairs(points: np.ndarray, mesh_normals: np.ndarray, noise: floa
                        shading=spec.shader(), backend=spec.backend)
             out[name] = r.images.float().cpu().numpy()
             out[name + "_mask"] = r.mask.cpu().numpy()
-    return {"noisy": out["noisy"], "clean": out["clean"], "mask": out["clean_mask"] | out["noisy_mask"]}
+    return {"noisy": out["noisy"], "clean": out["clean"], "mask": out["clean_mask"] | out["noisy_mask"],
+            "cam_R": cams.R.float().cpu().numpy(), "cam_t": cams.t.float().cpu().numpy(),
+            "cam_focal": cams.focal.float().cpu().numpy(), "cam_principal": cams.principal.float().cpu().numpy()}
 
 
 class CloudPairStream(PairStream):
@@ -85,7 +106,9 @@ class CloudPairStream(PairStream):
     def __init__(self, root, shapes: list[dict], spec, noise_level: float, views_per_shape: int, batch_size: int, *,
                  shuffle: bool = True, seed: int = 0, crop_size: int | None = None, random_crop: bool = True,
                  flips=(), crop_min_coverage: float = 0.0, max_pairs: int | None = None, rank: int = 0,
-                 world_size: int = 1, normals_k: int = 16, device: str = "cpu", pool: int = 4, stream: int = 0):
+                 world_size: int = 1, normals_k: int = 16, device: str = "cpu", pool: int = 4, stream: int = 0,
+                 noise_range=None, cascade: str | Path | None = None, multiview: bool = False, probes: int = 2048,
+                 spread_val: bool = False):
         super().__init__([], batch_size, spec.image_size, shuffle=shuffle, seed=seed, crop_size=crop_size,
                          random_crop=random_crop, flips=flips, interleave=1, drop_last=False, max_pairs=None,
                          rank=rank, world_size=world_size, planes=spec.shading == "planes", focal=spec.focal,
@@ -102,7 +125,30 @@ class CloudPairStream(PairStream):
         self.pool = max(1, int(pool))
         self.max_pairs = max_pairs
         self.stream = int(stream)
+        self.spread_val = bool(spread_val)
         self._clouds: dict[int, tuple] = {}
+        self.noise_range = None if noise_range is None else tuple(float(x) for x in noise_range)
+        if self.noise_range is not None and not 0 < self.noise_range[0] < self.noise_range[1]:
+            raise ValueError(f"noise_range must be [lo, hi] with 0 < lo < hi, got {list(noise_range)}")
+        self.multiview = bool(multiview)
+        self.probes = int(probes)
+        if self.multiview and self.views_per_shape % self.batch_size:
+            raise ValueError(f"multiview batches are one cloud's views: views_per_shape ({self.views_per_shape}) "
+                             f"must be a multiple of batch_size ({self.batch_size})")
+        self.cascade = None
+        if cascade is not None:
+            from data_prep.cascade_cache import read_cascade_manifest
+
+            man = read_cascade_manifest(cascade)
+            split = {s["split"] for s in self.shapes}
+            by_shape: dict[str, list[dict]] = {}
+            for e in man["items"]:
+                if e["split"] in split:
+                    by_shape.setdefault(e["shape_id"], []).append(e)
+            self.shapes = [s for s in self.shapes if s["shape_id"] in by_shape]
+            if not self.shapes:
+                raise ValueError(f"the cascade cache {cascade} holds none of this split's shapes")
+            self.cascade = (Path(cascade), {k: sorted(v, key=lambda e: e["draw"]) for k, v in by_shape.items()})
 
     def _shape_order(self, epoch: int) -> list[int]:
         order = list(range(len(self.shapes)))
@@ -112,7 +158,10 @@ class CloudPairStream(PairStream):
             per_rank = len(order) // self.world_size
             order = order[self.rank::self.world_size][:per_rank]
         if self.max_pairs is not None:
-            order = order[:max(1, -(-int(self.max_pairs) // self.views_per_shape))]
+            k = max(1, -(-int(self.max_pairs) // self.views_per_shape))
+            if self.spread_val and not self.shuffle and k < len(order):  # evenly over the split's shapes
+                order = [order[int(j)] for j in np.unique(np.linspace(0, len(order) - 1, k).round().astype(int))]
+            order = order[:k]
         return order
 
     def __len__(self) -> int:
@@ -131,14 +180,79 @@ class CloudPairStream(PairStream):
         return self._clouds[i]
 
     def render_shape(self, i: int, epoch: int) -> dict[str, np.ndarray]:
-        """The pairs of shape ``i`` in ``epoch``: noisy, clean, mask, pair_id arrays."""
+        """The pairs of shape ``i`` in ``epoch``: noisy, clean, mask, pair_id arrays (and the
+        cameras, the clean cloud and the noise std used)."""
         rng = np.random.default_rng([self.seed, epoch, self.stream, i, 104729])
         views = self.spec.sample_views(self.views_per_shape, rng)
         pts, mn, cn = self._cloud(i)
-        pairs = render_cloud_pairs(pts, mn, self.noise_level, int(rng.integers(2**62)), views, self.spec,
-                                   self.normals_k, self.device, clean_normals=cn)
+        noise_seed = int(rng.integers(2**62))
+        std = self.noise_level
+        if self.noise_range is not None:  # log-uniform in the range, per shape and epoch
+            lo, hi = self.noise_range
+            std = float(np.exp(np.log(lo) + rng.random() * (np.log(hi) - np.log(lo))))
+        inp = None
+        if self.cascade is not None:  # the cached draws of this shape, one per epoch in turn
+            from data_prep.cascade_cache import load_cascade_item
+
+            root, by_shape = self.cascade
+            entries = by_shape[self.shapes[i]["shape_id"]]
+            e = entries[epoch % len(entries)]
+            inp, std = load_cascade_item(root, e), float(e["noise_std"])
+        pairs = render_cloud_pairs(pts, mn, std, noise_seed, views, self.spec, self.normals_k, self.device,
+                                   clean_normals=cn, input_cloud=inp)
         pairs["pair_id"] = np.arange(i * self.views_per_shape, (i + 1) * self.views_per_shape, dtype=np.int64)
+        pairs["noise_std"] = np.full(self.views_per_shape, std, np.float32)
+        pairs["points"], pairs["normals"] = pts, cn
         return pairs
+
+    def _multiview_samples(self, rendered: dict, rng: np.random.Generator):
+        """One cloud's views as consecutive samples, each with its camera and the same probes:
+        crops centred on the projection of an anchor point (the one of 16 random surface points
+        that faces the most cameras), probes the clean points nearest it (validation: full
+        renders, probes drawn over the cloud)."""
+        from pix2pix.metrics import pixel_coords
+
+        pts, nrm = rendered["points"], rendered["normals"]
+        R, t = rendered["cam_R"], rendered["cam_t"]
+        f, pp = rendered["cam_focal"], rendered["cam_principal"]
+        H, W = self.image_size
+        centers = -np.einsum("vji,vj->vi", R, t)  # camera centres (world)
+        cand = rng.choice(len(pts), size=min(16, len(pts)), replace=False)
+        facing = (np.einsum("cj,vcj->vc", nrm[cand], centers[:, None] - pts[cand][None]) > 0).sum(0)
+        anchor = pts[cand[int(np.argmax(facing))]]
+        c = self.crop_size
+        if c:
+            d2 = ((pts - anchor) ** 2).sum(1)
+            probe_idx = np.argsort(d2)[:min(self.probes, len(pts))]
+        else:
+            probe_idx = rng.choice(len(pts), size=min(self.probes, len(pts)), replace=False)
+        probe_p = torch.from_numpy(np.ascontiguousarray(pts[probe_idx], np.float32))
+        probe_n = torch.from_numpy(np.ascontiguousarray(nrm[probe_idx], np.float32))
+
+        def chw(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.array(a, dtype=np.float32).transpose(2, 0, 1).copy())
+
+        for v in range(len(R)):
+            y0 = x0 = 0
+            if c:
+                pc = R[v] @ anchor + t[v]
+                u = pc[0] / max(pc[2], 1e-6) * f[v] + pp[v, 0]
+                w_ = pc[1] / max(pc[2], 1e-6) * f[v] + pp[v, 1]
+                x0 = int(np.clip(round(u - c / 2), 0, W - c))
+                y0 = int(np.clip(round(w_ - c / 2), 0, H - c))
+            h, w = (c, c) if c else (H, W)
+            sl = (v, slice(y0, y0 + h), slice(x0, x0 + w))
+            yield {
+                "noisy": chw(rendered["noisy"][sl]), "clean": chw(rendered["clean"][sl]),
+                "mask": torch.from_numpy(np.array(rendered["mask"][sl], dtype=bool)),
+                "pair_id": torch.tensor(int(rendered["pair_id"][v]), dtype=torch.int64),
+                "coords": pixel_coords(self.image_size, self.focal, (h, w), (y0, x0)),
+                "cam_R": torch.from_numpy(R[v].copy()), "cam_t": torch.from_numpy(t[v].copy()),
+                "cam_focal": torch.tensor(float(f[v])),
+                "cam_principal": torch.tensor([float(pp[v, 0]) - x0, float(pp[v, 1]) - y0]),
+                "noise_std": torch.tensor(float(rendered["noise_std"][v])),
+                "probe_points": probe_p, "probe_normals": probe_n,
+            }
 
     def __iter__(self):
         epoch = self.epoch if self.shuffle else 0
@@ -147,6 +261,20 @@ class CloudPairStream(PairStream):
         wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
         mine = order[wid::nw]
         left = None if self.max_pairs is None else -(-int(self.max_pairs) // nw)
+        if self.multiview:  # one cloud's views together (batches must not mix clouds)
+            for g, i in enumerate(mine):
+                rendered = self.render_shape(i, epoch)
+                rng = np.random.default_rng([self.seed, epoch, self.stream, self.rank, wid, g, 37])
+                for v0 in range(0, self.views_per_shape, self.batch_size):
+                    sub = {k: (a[v0:v0 + self.batch_size] if k not in ("points", "normals") else a)
+                           for k, a in rendered.items()}
+                    for sample in self._multiview_samples(sub, rng):
+                        if left is not None:
+                            if left <= 0:
+                                return
+                            left -= 1
+                        yield sample
+            return
         for g in range(0, len(mine), self.pool if self.shuffle else 1):
             group = mine[g:g + (self.pool if self.shuffle else 1)]
             rendered = {i: self.render_shape(i, epoch) for i in group}
@@ -176,16 +304,30 @@ class OnTheFlyDataModule(L.LightningDataModule):
         device: ``auto`` (the trainer's GPU when it has one, else the CPU), ``cpu`` or ``cuda[:N]``.
         pool: shapes whose views are shuffled together.
         any_noise: accept a noise level the manifest does not list.
+        noise_range, cascade, multiview, probes: the options of the module docstring
+            (``noise_range`` null: the dataset's own with ``noise_level: range``).
+        val_multiview: multi-view validation batches (full renders; their probes give the
+            fusion's measures, ``val/probe_*``); None: as ``multiview``. Validation then takes
+            its ``max_val_pairs`` from shapes spread evenly over the split (the real meshes of
+            a mixed dataset come last in it).
     """
 
     def __init__(self, root: str | Path, noise_level: float, views_per_shape: int = 8, batch_size: int = 8,
                  val_batch_size: int | None = None, crop_size: int | None = None, val_crop_size: int | None = None,
                  flips: Any = "auto", crop_min_coverage: float = 0.0, max_val_pairs: int | None = 64,
                  num_workers: int = 0, seed: int = 0, device: str = "auto", pool: int = 4, any_noise: bool = False,
-                 pin_memory: bool = False, persistent_workers: bool = False, **_: Any):
+                 pin_memory: bool = False, persistent_workers: bool = False, noise_range=None,
+                 cascade: str | None = None, multiview: bool = False, probes: int = 2048,
+                 val_multiview: bool | None = None, **_: Any):
         super().__init__()
         self.root = Path(root).expanduser()
-        self.noise_level = float(noise_level)
+        self.noise_range = None if noise_range is None else [float(x) for x in noise_range]
+        self.range_from_data = str(noise_level) == "range"
+        self.noise_level = float("nan") if self.range_from_data else float(noise_level)
+        self.cascade = None if cascade in (None, "", "null") else str(Path(cascade).expanduser())
+        self.multiview = bool(multiview)
+        self.val_multiview = self.multiview if val_multiview is None else bool(val_multiview)
+        self.probes = int(probes)
         self.views_per_shape = int(views_per_shape)
         self.batch_size = int(batch_size)
         self.val_batch_size = int(val_batch_size or batch_size)
@@ -211,6 +353,11 @@ class OnTheFlyDataModule(L.LightningDataModule):
             from data_prep.render_spec import RenderSpec
 
             m = read_clouds_manifest(self.root)
+            if self.range_from_data:  # noise_level: range -> the dataset's noise range, nominal level
+                if not m.get("noise_range"):
+                    raise ValueError(f"noise_level=range: {self.root} has no noise_range (dss-prep noise_range=[lo,hi])")
+                self.noise_range = self.noise_range or list(m["noise_range"])
+                self.noise_level = float(m["noise_levels"][0])
             if not self.any_noise and not any(abs(self.noise_level - float(x)) < 1e-9 for x in m["noise_levels"]):
                 raise ValueError(f"noise_level {self.noise_level} is not one of the dataset's {m['noise_levels']} "
                                  "(any_noise=true to train at another level)")
@@ -241,9 +388,13 @@ class OnTheFlyDataModule(L.LightningDataModule):
             self.root, shapes, self.spec, self.noise_level, self.views_per_shape,
             self.batch_size if train else self.val_batch_size, shuffle=train, seed=self.seed,
             crop_size=self.crop_size if train else self.val_crop_size, random_crop=train,
-            flips=self.flips if train else (), crop_min_coverage=self.crop_min_coverage if train else 0.0,
+            flips=self.flips if train and not self.multiview else (),
+            crop_min_coverage=self.crop_min_coverage if train else 0.0,
             max_pairs=None if train else self.max_val_pairs, rank=rank, world_size=world,
-            normals_k=int(m["config"]["normals_k"]), device=self._device(), pool=self.pool, stream=0 if train else 1)
+            normals_k=int(m["config"]["normals_k"]), device=self._device(), pool=self.pool, stream=0 if train else 1,
+            noise_range=self.noise_range, cascade=self.cascade,
+            multiview=self.multiview if train else self.val_multiview, probes=self.probes,
+            spread_val=not train and self.val_multiview)
 
     def setup(self, stage: str | None = None) -> None:
         self._load()
@@ -263,7 +414,8 @@ class OnTheFlyDataModule(L.LightningDataModule):
                 "image_size": list(m["image_size"]), "crop_size": self.crop_size, "channels": 3,
                 "render": m["render"], "flips": list(self.flips), "data_seed": m.get("seed"),
                 "data_package_version": m.get("package_version"), "on_the_fly": True,
-                "views_per_shape": self.views_per_shape,
+                "views_per_shape": self.views_per_shape, "noise_range": self.noise_range,
+                "cascade": self.cascade, "multiview": self.multiview,
                 "num_train_pairs": len(self.train_set) if self.train_set is not None else None}
 
     def _loader(self, ds: CloudPairStream | None, train: bool) -> DataLoader:

@@ -53,6 +53,20 @@ __all__ = [
 DENOISER_KIND = "dss-pix2pix-denoiser"
 METADATA_VERSION = "1"
 INPUT_NAME, OUTPUT_NAME = "noisy", "denoised"
+#: the second output of a generator that predicts its uncertainty (PlanesGenerator(uncertainty=True)):
+#: (B, 1, H, W) log of the Laplace scale of each pixel's inverse depth
+UNCERTAINTY_NAME = "log_scale"
+
+
+class _WithUncertainty(nn.Module):
+    """The generator's planes and its log-scale map as two graph outputs."""
+
+    def __init__(self, generator: nn.Module):
+        super().__init__()
+        self.generator = generator
+
+    def forward(self, x: torch.Tensor):
+        return self.generator.forward_with_uncertainty(x)
 DEFAULT_OPSET = 17
 #: metadata keys whose values are JSON (parsed by :func:`read_metadata`)
 JSON_KEYS = ("dss.train_image_size", "dss.render_image_size", "dss.render_settings",
@@ -139,15 +153,18 @@ def export_onnx(
     generator = generator.eval()
     channels = int(getattr(generator, "in_channels", 3))
     example = torch.rand(1, channels, *example_size)
+    module, outputs = generator, [OUTPUT_NAME]
+    if getattr(generator, "predicts_uncertainty", False):  # a second output: the log scale map
+        module, outputs = _WithUncertainty(generator), [OUTPUT_NAME, UNCERTAINTY_NAME]
+    axes = {0: "batch", 2: "height", 3: "width"}
     try:
         with atomic_path(path) as tmp, torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # tracer chatter about shapes; we check the result
             # the TorchScript exporter (dynamo=False) needs no extra package (onnxscript)
             torch.onnx.export(
-                generator, (example,), str(tmp),
-                input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
-                dynamic_axes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"},
-                              OUTPUT_NAME: {0: "batch", 2: "height", 3: "width"}},
+                module, (example,), str(tmp),
+                input_names=[INPUT_NAME], output_names=outputs,
+                dynamic_axes={INPUT_NAME: axes, **{o: axes for o in outputs}},
                 opset_version=opset, do_constant_folding=True, dynamo=False,
             )
             model = onnx.load(str(tmp))

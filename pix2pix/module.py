@@ -74,6 +74,7 @@ from .metrics import l1 as l1_metric
 from .metrics import planes_inverse_depth, planes_metric_sums, surface_pixels
 from .metrics import psnr as psnr_metric
 from .metrics import smape as smape_metric
+from .multiview import agreement_terms, has_multiview, probe_observations
 from .networks import (
     PatchDiscriminator,
     ResNetGenerator,
@@ -182,6 +183,18 @@ class Pix2PixModule(L.LightningModule):
         lambda_depth: weight of the L1 of the implied inverse depth (planes batches, see the
             module docstring).
         lambda_normal: weight of the L1 of the planes' unit directions (planes batches).
+        lambda_nll: weight of the Laplace negative log-likelihood ``e / b + log b`` of a
+            generator that predicts the scale ``b`` of its inverse depth's error ``e``
+            (``PlanesGenerator(uncertainty=True)``), over the surface pixels. ``e`` is detached:
+            the planes learn from the L1 terms, the scale learns to predict their error.
+        lambda_agree, lambda_fused: multi-view batches (:mod:`pix2pix.multiview`): weight of the
+            mean spread across views of the probes' offsets (the fusion's consistency reads it),
+            and of the mean |offset| the views agree on (what the fusion would move a point on
+            the clean surface by); both in bounding-box diagonals.
+        agree_tau: how far (bbox diagonals) the clean render's surface may be from a probe for
+            the probe to count as seen; agree_min_views: views a probe needs; agree_cap: each
+            probe's spread and |mean offset| are clamped at this many bbox diagonals in the loss
+            (None: not clamped), so that the few probes at occlusion edges do not dominate it.
     """
 
     def __init__(
@@ -204,6 +217,12 @@ class Pix2PixModule(L.LightningModule):
         init_from: str | None = None,
         lambda_depth: float = 0.0,
         lambda_normal: float = 0.0,
+        lambda_nll: float = 0.0,
+        lambda_agree: float = 0.0,
+        lambda_fused: float = 0.0,
+        agree_tau: float = 0.003,
+        agree_min_views: int = 3,
+        agree_cap: float | None = None,
     ):
         super().__init__()
         if lr_schedule not in ("constant", "linear"):
@@ -217,6 +236,7 @@ class Pix2PixModule(L.LightningModule):
         self.data_info: dict[str, Any] = {}
         self._val_sums: dict[str, torch.Tensor] = {}
         self._val_grid: tuple[torch.Tensor, ...] | None = None
+        self._probe_values: dict[str, list[torch.Tensor]] = {}
         self._throughput = [0, 0.0]  # images, seconds in this epoch's training steps
         if init_from:
             self.warm_start = load_generator_weights(generator, init_from)
@@ -263,7 +283,7 @@ class Pix2PixModule(L.LightningModule):
         noisy, clean = batch["noisy"], batch["clean"]
         opts = self._opts()
         opt_g = opts[0]
-        image, logit = _image_and_coverage(self.generator, noisy, batch.get("coords"))
+        image, logit, log_b = _outputs(self.generator, noisy, batch.get("coords"))
         logs: dict[str, torch.Tensor] = {}
         if logit is None:
             fake = l1_image = image
@@ -293,13 +313,32 @@ class Pix2PixModule(L.LightningModule):
         if coords is not None and (lam_d > 0 or lam_n > 0):
             surf = surface_pixels(noisy, clean)
             if bool(surf.any()):
-                loss_depth = (planes_inverse_depth(l1_image, coords) - planes_inverse_depth(clean, coords)).abs()[surf].mean()
+                err = (planes_inverse_depth(l1_image, coords) - planes_inverse_depth(clean, coords)).abs()
+                loss_depth = err[surf].mean()
                 n_out = F.normalize(l1_image, dim=1, eps=1e-8)
                 n_clean = F.normalize(clean, dim=1, eps=1e-8)
                 loss_normal = (n_out - n_clean).abs().mean(1)[surf].mean()
                 loss_g = loss_g + lam_d * loss_depth + lam_n * loss_normal
                 logs["train/depth_l1"] = loss_depth.detach()
                 logs["train/normal_l1"] = loss_normal.detach()
+                lam_nll = float(self.hparams.get("lambda_nll", 0.0))
+                if log_b is not None and lam_nll > 0:
+                    ls = log_b[:, 0][surf]
+                    nll = (err.detach()[surf] * torch.exp(-ls) + ls).mean()
+                    loss_g = loss_g + lam_nll * nll
+                    logs["train/nll"] = nll.detach()
+        lam_a, lam_f = float(self.hparams.get("lambda_agree", 0.0)), float(self.hparams.get("lambda_fused", 0.0))
+        if (lam_a > 0 or lam_f > 0) and has_multiview(batch):
+            terms = self._agreement(l1_image, clean, noisy, batch)
+            if terms is not None:
+                cap = self.hparams.get("agree_cap")
+                sp, fu = terms["spread"], terms["mean"].abs()
+                if cap:  # probes beyond it (occlusion edges, silhouettes) stop pulling: the bulk counts
+                    sp, fu = sp.clamp_max(float(cap)), fu.clamp_max(float(cap))
+                spread, fused = sp.mean(), fu.mean()
+                loss_g = loss_g + lam_a * spread + lam_f * fused
+                logs["train/probe_spread"] = spread.detach()
+                logs["train/probe_fused_err"] = fused.detach()
         if logit is not None:
             loss_cov = F.binary_cross_entropy_with_logits(logit, clean_cov.to(logit.dtype))
             loss_g = loss_g + self.hparams.lambda_coverage * loss_cov
@@ -322,6 +361,17 @@ class Pix2PixModule(L.LightningModule):
         self._throughput[0] += noisy.shape[0]
         self._throughput[1] += time.perf_counter() - t0
         return loss_g.detach()
+
+    def _agreement(self, planes: torch.Tensor, clean: torch.Tensor, noisy: torch.Tensor,
+                   batch: dict) -> dict[str, torch.Tensor] | None:
+        """:func:`pix2pix.multiview.agreement_terms` of the probes seen in enough views (None: none
+        is), each term restricted to those."""
+        off, w, z = probe_observations(planes, clean, noisy, batch, float(self.hparams.get("agree_tau", 0.003)))
+        t = agreement_terms(off, w, int(self.hparams.get("agree_min_views", 3)), depth=z)
+        valid = t["valid"]
+        if not bool(valid.any()):
+            return None
+        return {k: v[valid] for k, v in t.items() if k != "valid"}
 
     def _check_finite(self, name: str, loss: torch.Tensor, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         """Stop before a non-finite loss reaches the weights, saying whether the batch was to blame."""
@@ -352,6 +402,7 @@ class Pix2PixModule(L.LightningModule):
     def on_validation_epoch_start(self) -> None:
         self._val_sums = {}
         self._val_grid = None
+        self._probe_values: dict[str, list[torch.Tensor]] = {}
 
     def _accumulate(self, key: str, value: torch.Tensor, weight: float) -> None:
         v = value.detach().double() * weight
@@ -360,7 +411,7 @@ class Pix2PixModule(L.LightningModule):
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         noisy, clean = batch["noisy"], batch["clean"]
         mask = batch.get("mask")
-        out, logit = _image_and_coverage(self.generator, noisy, batch.get("coords"))
+        out, logit, log_b = _outputs(self.generator, noisy, batch.get("coords"))
         if logit is not None:
             out, gate = apply_coverage(out, logit), logit > 0
             either = covered(noisy) | covered(clean)
@@ -387,6 +438,27 @@ class Pix2PixModule(L.LightningModule):
             for prefix, img in (("", out), ("noisy_", noisy)):
                 for k, v in planes_metric_sums(img, clean, coords, surf).items():
                     self._accumulate(f"planes:{prefix}{k}", v, 1.0)
+            if log_b is not None and bool(surf.any()):
+                err = (planes_inverse_depth(out, coords) - planes_inverse_depth(clean, coords)).abs()[surf]
+                ls = log_b[:, 0][surf]
+                self._accumulate("unc:nll", (err * torch.exp(-ls) + ls).sum(), 1.0)
+                self._accumulate("unc:pixels", torch.tensor(float(surf.sum()), device=out.device), 1.0)
+        if has_multiview(batch):  # what the plane fusion would read from these views
+            for prefix, img in (("", out), ("noisy_", noisy)):
+                t = self._agreement(img, clean, noisy, batch)
+                if t is None:
+                    continue
+                # the fusion's s0: 0.15 pixel footprints, at most 0.2 noise levels
+                s0 = torch.minimum(0.15 * t["depth"] / batch["cam_focal"][0], 0.2 * batch["noise_std"][0])
+                n = float(len(t["spread"]))
+                self._accumulate(f"probe:{prefix}spread", t["spread"].sum(), 1.0)
+                self._accumulate(f"probe:{prefix}fused_err", t["mean"].abs().sum(), 1.0)
+                self._accumulate(f"probe:{prefix}trusted", (t["spread"] <= s0).double().sum(), 1.0)
+                self._accumulate(f"probe:{prefix}n", torch.tensor(n, device=out.device), 1.0)
+                # medians need the values (the fusion reports its spread's median; means are
+                # dominated by silhouette probes)
+                for k, v in (("spread", t["spread"]), ("fused_err", t["mean"].abs())):
+                    self._probe_values.setdefault(prefix + k, []).append(v.detach().double().cpu())
         k = self.hparams.num_grid_images
         if k > 0 and (self._val_grid is None or self._val_grid[0].shape[0] < k):
             take = (noisy[:k], out[:k], clean[:k])
@@ -405,9 +477,22 @@ class Pix2PixModule(L.LightningModule):
         pixels = sums.pop("pixels").clamp_min(1)
         cov = (sums.pop("coverage_hits", None), sums.pop("coverage_pixels", None))
         planes = {k[len("planes:"):]: sums.pop(k) for k in [k for k in sums if k.startswith("planes:")]}
+        unc = {k[len("unc:"):]: sums.pop(k) for k in [k for k in sums if k.startswith("unc:")]}
+        probe = {k[len("probe:"):]: sums.pop(k) for k in [k for k in sums if k.startswith("probe:")]}
         means = {k: float(v / (count if k.endswith(("psnr", "_full")) else pixels))
                  for k, v in sums.items()}
         means.update(_planes_means(planes))
+        if unc:
+            means["nll"] = float(unc["nll"] / unc["pixels"].clamp_min(1))
+        for prefix in ("", "noisy_"):  # per probe: spread, |fused offset|, the fraction trusted
+            if prefix + "n" in probe:
+                n = probe[prefix + "n"].clamp_min(1)
+                for k in ("spread", "fused_err", "trusted"):
+                    means[f"probe_{prefix}{k}"] = float(probe[prefix + k] / n)
+                for k in ("spread", "fused_err"):  # this process's probes (not reduced across ranks)
+                    vals = self._probe_values.get(prefix + k)
+                    if vals:
+                        means[f"probe_{prefix}{k}_median"] = float(torch.cat(vals).median())
         for pre in ("", "snap_") if "snap_smape" in means else ("",):
             means[pre + "smape_reduction"] = 1.0 - means[pre + "smape"] / max(means["noisy_smape"], 1e-12)
         bad = sorted(k for k in ("l1", "smape", "noisy_l1", "noisy_smape") if not np.isfinite(means[k]))
@@ -509,6 +594,15 @@ def _planes_means(sums: dict[str, torch.Tensor]) -> dict[str, float]:
         for k in ("surface_smape", "depth_err", "normal_err_deg"):
             out[k.replace("_deg", "") + "_reduction"] = 1.0 - out[k] / max(out["noisy_" + k], 1e-12)
     return out
+
+
+def _outputs(generator: nn.Module, x: torch.Tensor,
+             coords: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """(ungated image, coverage logit or None, log uncertainty scale (B, 1, H, W) or None)."""
+    if getattr(generator, "predicts_uncertainty", False):
+        image, log_b = generator.forward_with_uncertainty(x, coords)
+        return image, None, log_b
+    return (*_image_and_coverage(generator, x, coords), None)
 
 
 def _image_and_coverage(generator: nn.Module, x: torch.Tensor,

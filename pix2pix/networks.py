@@ -406,6 +406,13 @@ class PlanesGenerator(nn.Module):
     export). ``input_mean``/``input_std``: per feature (inv, m_x, m_y, m_z), for both the raw and
     the blurred copy.
 
+    ``uncertainty``: the head has a fifth channel, the log of the predicted Laplace scale ``b`` of
+    the output's inverse-depth error per pixel (1 / bbox diagonals; trained by a negative
+    log-likelihood in :class:`pix2pix.module.Pix2PixModule`, read by the plane fusion's
+    ``uncertainty`` option). It starts at ``log(uncertainty_init)`` (the head is zero-initialised).
+    :meth:`forward` still returns the planes alone; :meth:`forward_with_uncertainty` returns
+    both, and the ONNX export adds it as a second output ``log_scale`` (B, 1, H, W).
+
     Shapes: (B, 3, H, W) planes -> (B, 3, H, W) planes.
     """
 
@@ -416,7 +423,7 @@ class PlanesGenerator(nn.Module):
                  input_mean: float | list[float] = (0.4, 0.0, 0.0, -0.25),
                  input_std: float | list[float] = (0.5, 0.4, 0.4, 0.4), init_gain: float = 1.0,
                  fov_deg: float = 40.0, min_cos: float = 0.05, base_blur_px: float = 3.0, skip: bool = True,
-                 **_ignored: Any):
+                 uncertainty: bool = False, uncertainty_init: float = 0.01, **_ignored: Any):
         super().__init__()
         if not 1.0 <= float(fov_deg) <= 170.0:
             raise ValueError(f"fov_deg must be in [1, 170], got {fov_deg}")
@@ -445,13 +452,19 @@ class PlanesGenerator(nn.Module):
         self.blocks = nn.Sequential(*[ResidualBlock(4 * ngf, norm_layer) for _ in range(n_blocks)])
         self.up1 = Up(4 * ngf, 2 * ngf, norm_layer)
         self.up2 = Up(2 * ngf, ngf, norm_layer)
-        self.head = Head(2 * ngf if self.skip else ngf, 4)
+        if not float(uncertainty_init) > 0:
+            raise ValueError(f"uncertainty_init must be > 0, got {uncertainty_init}")
+        self.predicts_uncertainty = bool(uncertainty)
+        self.uncertainty_init = float(uncertainty_init)
+        self.head = Head(2 * ngf if self.skip else ngf, 5 if self.predicts_uncertainty else 4)
         init_xavier(self, init_gain)
         nn.init.zeros_(self.head[1].weight)
         self._config = {"kind": "planes", "ngf": int(ngf), "n_blocks": int(n_blocks), "norm_layer": norm_spec(norm_layer),
                         "input_mean": mean, "input_std": std, "init_gain": float(init_gain), "fov_deg": self.fov_deg,
                         "min_cos": self.min_cos, "base_blur_px": self.base_blur_px, "skip": self.skip,
                         "in_channels": 3, "out_channels": 3, "residual": True, "coverage_head": False}
+        if self.predicts_uncertainty:  # only then: the configs of earlier models stay as they were
+            self._config.update(uncertainty=True, uncertainty_init=self.uncertainty_init)
 
     def config(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
@@ -490,6 +503,11 @@ class PlanesGenerator(nn.Module):
         return torch.where(w > 1e-3, x[:, :-1] / w.clamp_min(1e-3), f)
 
     def forward_with_coverage(self, x: torch.Tensor, coords: torch.Tensor | None = None):
+        a, _ = self.forward_with_uncertainty(x, coords)
+        return a, None
+
+    def forward_with_uncertainty(self, x: torch.Tensor, coords: torch.Tensor | None = None):
+        """(planes (B, 3, H, W), log Laplace scale of the inverse depth (B, 1, H, W) or None)."""
         if _checks_enabled():
             check_image_batch(x, 3, who=type(self).__name__)
         if coords is None:
@@ -504,10 +522,12 @@ class PlanesGenerator(nn.Module):
         y = self.up2(self.up1(self.blocks(self.down2(self.down1(y0)))))
         if self.skip:
             y = torch.cat([y, y0], dim=1)
-        out = (base_n + self.head(y)) * self._std + self._mean
+        h = self.head(y)
+        out = (base_n + h[:, :4]) * self._std + self._mean
         m2 = torch.nn.functional.normalize(out[:, 1:], dim=1, eps=1e-6)
         a = self.planes(out[:, :1], m2, coords.expand(x.shape[0], -1, -1, -1)) * cov
-        return a, None
+        log_b = h[:, 4:5] + math.log(self.uncertainty_init) if self.predicts_uncertainty else None
+        return a, log_b
 
     def forward(self, x: torch.Tensor, coords: torch.Tensor | None = None) -> torch.Tensor:
         return self.forward_with_coverage(x, coords)[0]

@@ -110,6 +110,10 @@ class OnnxDenoiser:
         self.channels = int(self.metadata.get("dss.channels", 3))
         self.size_multiple = int(self.metadata.get("dss.size_multiple", 4))
         self._check_graph(list(inputs[0].shape), self.session.get_outputs())
+        #: the graph's second output "log_scale" (PlanesGenerator(uncertainty=True)); the latest
+        #: call's map is kept in ``last_log_scale``
+        self.predicts_uncertainty = [o.name for o in self.session.get_outputs()[1:2]] == ["log_scale"]
+        self.last_log_scale = None
         #: output pixels below this intensity are set to 0 (None: no snap)
         self.background_threshold = (background_snap_threshold(self.render_settings)
                                      if snap_background else None)
@@ -215,11 +219,15 @@ class OnnxDenoiser:
         ph, pw = (-h) % m, (-w) % m
         if ph or pw:
             x = np.pad(x, ((0, 0), (0, 0), (0, ph), (0, pw)), mode="reflect")
-        outs = [
-            self.session.run(None, {self.input_name: np.ascontiguousarray(x[i:i + self.max_batch])})[0]
+        runs = [
+            self.session.run(None, {self.input_name: np.ascontiguousarray(x[i:i + self.max_batch])})
             for i in range(0, x.shape[0], self.max_batch)
         ]
+        outs = [r[0] for r in runs]
         y = np.concatenate(outs, axis=0) if outs else np.zeros_like(x)
+        # a model that predicts its uncertainty: (B, 1, H, W) log Laplace scale of the inverse depth
+        self.last_log_scale = (np.ascontiguousarray(np.concatenate([r[1] for r in runs])[:, :, :h, :w], np.float32)
+                               if self.predicts_uncertainty and runs else None)
         y = _snap(y[:, :, :h, :w], self.background_threshold, channel_dim=1)
         return np.ascontiguousarray(y, dtype=np.float32)
 

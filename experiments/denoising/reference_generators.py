@@ -42,6 +42,7 @@ __all__ = [
     "SlicReference",
     "IdentityReference",
     "OracleReference",
+    "AutoReference",
     "SpecViewSampler",
     "select_model",
     "spec_from_metadata",
@@ -148,6 +149,13 @@ class OnnxReference(_Generator):
 
     def render_spec(self, base: RenderSpec | None = None) -> tuple[RenderSpec, str]:
         return spec_from_metadata(self.denoiser.metadata, base)
+
+    @property
+    def last_uncertainty(self) -> torch.Tensor | None:
+        """(V, H, W) the predicted Laplace scale of each pixel's inverse depth in the latest call
+        (a model trained with ``uncertainty``), else None; the plane fusion may read it."""
+        ls = self.denoiser.last_log_scale
+        return None if ls is None else torch.from_numpy(np.exp(ls[:, 0]))
 
     def __call__(self, images: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         x = images.detach().cpu().numpy()
@@ -260,6 +268,99 @@ def oracle_normals(clean: torch.Tensor, points: torch.Tensor, normals: torch.Ten
         n = estimate_normals(clean, k=k, orient="none").to(clean)
     j = knn(points, 1, query=clean).idx[:, 0].long()
     return torch.where((n * normals[j]).sum(1, keepdim=True) < 0, -n, n)
+
+
+class AutoReference(_Generator):
+    """``reference=auto``: the reference chosen per noise level from a table (``conf/reference/auto.yaml``).
+
+    ``table``: ``{noise level: entry}``; the entry of the level nearest (in log scale) to the
+    cloud's noise (the hint or the estimate) is used. An entry is a reference name (``identity``,
+    ``oracle``, ``l0``, ``slic``: their ``conf/reference`` defaults; ``onnx``: the shipped model
+    for the noise level), a model file (``*.onnx``; relative paths from the repository root,
+    then from ``experiments/assets``), or a mapping ``{reference: <name or file>, fusion:
+    {key: value}}`` whose ``fusion`` settings the job applies with it (a cascade model needs
+    ``reference_cloud: refined``, a model with an uncertainty head may ask for ``uncertainty``).
+
+    The job resolves it once the noise is known (:meth:`resolve_for_noise`); it is never called
+    on images itself.
+    """
+
+    name = "auto"
+
+    def __init__(self, table: dict | None = None, threads: int | None = None, max_batch: int = 12, **_: Any):
+        if not table:
+            raise ValueError("reference=auto needs reference.table ({noise level: reference name or model file})")
+        self.table = {}
+        for level, entry in dict(table).items():
+            lv = float(level)
+            if not (lv > 0 and math.isfinite(lv)):
+                raise ValueError(f"reference.table: noise level {level!r} is not a positive fraction of the diagonal")
+            self.table[lv] = _auto_entry(entry)
+        self.threads, self.max_batch = threads, int(max_batch)
+
+    def entry_for(self, noise: float) -> tuple[float, dict]:
+        """(table level, entry {"reference": ..., "fusion": {...}}) for ``noise``."""
+        if not (noise and noise > 0 and math.isfinite(noise)):
+            raise ValueError(f"reference=auto needs a positive noise level, got {noise}")
+        level = min(self.table, key=lambda lv: abs(math.log(noise / lv)))
+        return level, self.table[level]
+
+    def resolve_for_noise(self, noise: float) -> tuple[_Generator, str, dict]:
+        """(the generator, a note for metrics.json, the fusion settings that come with it)."""
+        level, entry = self.entry_for(noise)
+        ref = entry["reference"]
+        if ref in _NAMED:
+            gen = _NAMED[ref]()
+            what = ref
+        else:
+            if ref == "onnx":
+                path, _ = select_model(noise)
+            else:
+                path = _model_path(ref)
+            gen = OnnxReference(path, threads=self.threads, max_batch=self.max_batch)
+            what = str(path)
+        fusion = dict(entry.get("fusion") or {})
+        note = (f"reference=auto: {what} (table level {level:g} for noise {noise:.4g})"
+                + (f", fusion {fusion}" if fusion else ""))
+        return gen, note, fusion
+
+    def __call__(self, images, mask=None):
+        raise RuntimeError("reference=auto must be resolved for the noise level first (resolve_for_noise)")
+
+    def describe(self) -> dict:
+        return {"name": self.name, "table": {str(k): v for k, v in self.table.items()}}
+
+
+#: the reference names an auto table may use besides model files and "onnx"
+_NAMED = {"identity": lambda: IdentityReference(), "oracle": lambda: OracleReference(),
+          "l0": lambda: L0Reference(), "slic": lambda: SlicReference()}
+
+
+def _auto_entry(entry) -> dict:
+    if isinstance(entry, str):
+        entry = {"reference": entry}
+    try:
+        entry = dict(entry)
+    except (TypeError, ValueError):
+        raise ValueError(f"reference.table: entry {entry!r} is not a reference name, a model file or a mapping") from None
+    bad = set(entry) - {"reference", "fusion"}
+    ref = entry.get("reference")
+    if bad or not isinstance(ref, str) or not ref:
+        raise ValueError(f"reference.table: entry {entry!r} must be a name, a .onnx file or "
+                         "{reference: ..., fusion: {...}}")
+    if ref not in _NAMED and ref != "onnx" and not ref.endswith(".onnx"):
+        raise ValueError(f"reference.table: {ref!r} is neither a reference name ({sorted(_NAMED)} or onnx) "
+                         "nor a .onnx model file")
+    return {"reference": ref, "fusion": dict(entry.get("fusion") or {})}
+
+
+def _model_path(ref: str) -> Path:
+    p = Path(ref).expanduser()
+    for cand in ([p] if p.is_absolute() else [ASSETS_DIR.parent.parent / p, ASSETS_DIR / p]):
+        if cand.is_file():
+            return cand
+    raise ModelNotFoundError(f"reference.table names the model {ref}, which does not exist (relative paths are "
+                             f"looked up from the repository root and from {ASSETS_DIR})")
 
 
 # --------------------------------------------------------------------------------- cameras

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 log = logging.getLogger(__name__)
 
@@ -20,7 +20,9 @@ def explicit_model(cfg: DictConfig) -> bool:
 
 def make_reference(cfg: DictConfig, noise: float | None):
     """Instantiate ``cfg.reference``; an ``onnx`` generator with ``model: auto`` gets the shipped
-    model for ``noise``. Returns (generator, model selection note)."""
+    model for ``noise``; ``reference=auto`` (conf/reference/auto.yaml) the table's entry for
+    ``noise``, whose fusion settings are written into ``cfg.fusion``. Returns (generator, model
+    selection note)."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
@@ -36,12 +38,21 @@ def make_reference(cfg: DictConfig, noise: float | None):
         kwargs["model"] = str(path)
         note = f"shipped model for noise {level:g} ({path.name}), chosen for noise {noise:.4g}"
     try:
-        return instantiate(node, **kwargs), note
+        generator = instantiate(node, **kwargs)
     except InstantiationException as e:
         # Hydra wraps the generator's own (clear) error; show that one to the user.
         if isinstance(e.__cause__, Exception):
             raise e.__cause__ from None
         raise
+    if hasattr(generator, "resolve_for_noise"):  # reference=auto: the table's entry for this noise level
+        if noise is None:
+            raise ValueError("reference=auto needs a noise level (noise=... or the estimate)")
+        generator, note, fusion = generator.resolve_for_noise(noise)
+        if fusion:  # the entry's fusion settings, before the job's settings are resolved
+            with open_dict(cfg):
+                for k, v in fusion.items():
+                    cfg.fusion[k] = v
+    return generator, note
 
 
 def given_reference(cfg: DictConfig):

@@ -1,0 +1,44 @@
+"""The ``dss-cascade/1`` cache: noisy training clouds after dss-denoise's classical stage, made
+by ``python -m experiments.denoising.cascade`` and read by the on-the-fly training data
+(``dss-train data=onthefly +data.cascade=<cache>``, :mod:`experiments.onthefly`).
+
+Layout: ``<root>/manifest.json`` (``format``, source dataset and its fingerprint, settings, one
+entry per item: ``shape_id``, ``split``, ``draw``, ``noise_std``, ``noise_seed``,
+``estimated_noise``, ``file``, ``sha256``, ``cpu_s``) and ``<root>/<split>/<shape_id>-d<draw>.npz``
+with ``points`` (N, 3) float32 and ``normals`` (N, 3) float32 in the clean cloud's frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CASCADE_FORMAT", "draw_noise", "read_cascade_manifest", "load_cascade_item"]
+
+CASCADE_FORMAT = "dss-cascade/1"
+
+
+def draw_noise(noise_range, seed_parts) -> float:
+    """A std drawn log-uniformly from ``noise_range`` (lo, hi) with a generator seeded by ``seed_parts``."""
+    lo, hi = (float(x) for x in noise_range)
+    u = np.random.default_rng(list(seed_parts)).random()
+    return float(math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
+
+
+def read_cascade_manifest(root) -> dict:
+    path = Path(root) / "manifest.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no cascade cache (make it with python -m experiments.denoising.cascade)")
+    m = json.loads(path.read_text())
+    if m.get("format") != CASCADE_FORMAT:
+        raise ValueError(f"{path}: format {m.get('format')!r}, expected {CASCADE_FORMAT!r}")
+    return m
+
+
+def load_cascade_item(root, entry: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(refined points (N, 3), normals (N, 3)) float32 of a manifest entry."""
+    with np.load(Path(root) / entry["file"]) as z:
+        return np.asarray(z["points"], np.float32), np.asarray(z["normals"], np.float32)
