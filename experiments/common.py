@@ -507,6 +507,9 @@ def describe_error(e: BaseException) -> str:
         parent = getattr(cause, "parent_node", None)
         prefix = full[: len(full) - len(key)]
         keys = list(parent.keys()) if parent is not None and hasattr(parent, "keys") else []
+        if full in ("reference.model", "reference.threads") and "model" not in keys:
+            # the default reference (identity) has no model: the key belongs to reference=onnx
+            return f"unknown key '{full}': the reference in use takes no model; a model file needs reference=onnx {full}=..."
         return f"unknown key '{full}'{_closest(key, keys, prefix)}; add it with +{full}=... only if it is meant to be new"
     if isinstance(e, MissingConfigException) and e.options:
         group = (e.missing_cfg_file or "").rsplit("/", 1)

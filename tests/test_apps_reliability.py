@@ -251,6 +251,8 @@ def test_expected_failures_print_one_line_and_exit_2(sphere_ply, tmp_path):
          r"unknown key 'inptu' \(did you mean 'input'\?\)"),
         (("experiments.apps.denoise", "reference=onxx", f"hydra.run.dir={tmp_path / 'b'}"),
          r"no config 'onxx' in 'reference' \(did you mean 'onnx'\?\)"),
+        (("experiments.apps.denoise", "reference.model=my.onnx", f"hydra.run.dir={tmp_path / 'g'}"),
+         r"unknown key 'reference.model': .*needs reference=onnx reference.model="),
         (("experiments.apps.render", str(cut), f"hydra.run.dir={tmp_path / 'c'}"), r"cut\.ply: truncated"),
         (("experiments.apps.render", f"hydra.run.dir={tmp_path / 'd'}"), r"missing value: input=\.\.\. is required"),
         (("experiments.apps.train", f"data.root={tmp_path / 'nodata'}", "logger=none", f"hydra.run.dir={tmp_path / 'e'}"),

@@ -4,7 +4,7 @@
     dss-denoise noisy.ply                            # model picked from the estimated noise level
     dss-denoise noisy.ply noise=0.003                # ... or from a hint (0.003 | 0.01)
     dss-denoise noisy.ply reference=l0               # L0-DSS (image filter instead of the network)
-    dss-denoise noisy.ply reference.model=my.onnx    # any denoiser exported with dss-export
+    dss-denoise noisy.ply reference=onnx reference.model=my.onnx    # any denoiser exported with dss-export
     dss-denoise noisy.ply clean=clean.ply mesh=gt.ply   # ground truth: metrics in both protocols
 
 The noisy cloud (normals estimated when missing; rows with NaN/inf reported and dropped; points
