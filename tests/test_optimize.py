@@ -452,7 +452,7 @@ def test_frames_every_refits_the_planes_every_kth_step_and_keeps_the_differences
         opt = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32)
         fits = []
         fit = opt.proj.frames
-        opt.proj.frames = lambda *a, **k: fits.append(1) or fit(*a, **k)
+        opt.proj.frames = lambda *a, fits=fits, fit=fit, **k: fits.append(1) or fit(*a, **k)
         flat[every] = opt.run().points[:, 2].abs().mean().item()
         assert len(fits) == fits_expected, (every, len(fits))
     start = pts[:, 2].abs().mean().item()

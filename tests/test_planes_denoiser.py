@@ -313,10 +313,10 @@ def test_crops_can_be_drawn_on_the_surface(planes_root):
 
 
 def test_planes_training_logs_geometry_and_lambda_depth_moves_it(planes_root, tmp_path):
+    import lightning as L
+
     from pix2pix.datamodule import Pix2PixDataModule
     from pix2pix.module import Pix2PixModule
-
-    import lightning as L
 
     def fit(lam_d):
         torch.manual_seed(0)

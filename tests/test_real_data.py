@@ -10,7 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data_prep.real_meshes import RealDataError, check_mesh, install_real, load_split, read_manifest, read_off, real_cases
+from data_prep.real_meshes import (
+    RealDataError,
+    check_mesh,
+    install_real,
+    load_split,
+    read_manifest,
+    read_off,
+    real_cases,
+)
 
 TETRA = b"""OFF
 # a closed tetrahedron

@@ -11,7 +11,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from experiments.denoising.reference_generators import AutoReference, IdentityReference, OnnxReference
+from experiments.denoising.reference_generators import (
+    AutoReference,
+    IdentityReference,
+    OnnxReference,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "experiments" / "assets" / "example"

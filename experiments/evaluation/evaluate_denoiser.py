@@ -49,14 +49,12 @@ def _sums(img: torch.Tensor, clean: torch.Tensor, mask: torch.Tensor) -> dict[st
 def evaluate(model: str | Path, data: str | Path, split: str = "val", max_pairs: int | None = 256,
              batch: int = 16, threads: int = 1) -> dict:
     """Metrics of ``model`` on ``split`` of the dataset at ``data`` (see module docstring)."""
-    from pix2pix.metrics import psnr
+    from pix2pix.augment import is_planes
+    from pix2pix.datamodule import render_focal
+    from pix2pix.metrics import pixel_coords, psnr
     from pix2pix.postprocess import background_snap_threshold, snap_background
     from pix2pix.runtime import OnnxDenoiser
     from pix2pix.shards import open_shard, read_manifest, select_shards
-
-    from pix2pix.augment import is_planes
-    from pix2pix.datamodule import render_focal
-    from pix2pix.metrics import pixel_coords
 
     den = OnnxDenoiser(model, intra_op_num_threads=threads, max_batch=batch, snap_background=False)
     thr = background_snap_threshold(den.render_settings)  # what the runtime's default snap uses

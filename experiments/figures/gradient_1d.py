@@ -42,8 +42,8 @@ import torch
 from tqdm import tqdm
 
 from dss.io_utils import atomic_savefig, atomic_write_json
-from experiments import outputs
 from dss.render import RenderSettings, render, resolve_backend
+from experiments import outputs
 
 from . import (
     axis_camera,

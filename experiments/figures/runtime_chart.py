@@ -28,7 +28,6 @@ import logging
 from pathlib import Path
 
 from dss.io_utils import atomic_savefig, atomic_write_json
-
 from experiments import outputs
 
 from . import command_line, setup_matplotlib
