@@ -53,10 +53,11 @@ def test_two_real_meshes_run_every_method_and_resume(tmp_path):
     from experiments.evaluation.real_benchmark import run
 
     cfg = _cfg(tmp_path / "bench", "groups=[tuning,held_out]", "shapes_per_group=1", "points=[2000]",
-               "noise=[0.005]", "seeds=[0]", "face_scan=false")
+               "noise=[0.005]", "seeds=[0,1]", "seeds_by_group={tuning:[0],held_out:[1]}", "face_scan=false")
     cfg.classical = {"taubin": {"method": "open3d_taubin", "params": {"iterations": 10}}}  # open3d: no extra needed
     cfg.dss_methods = {"dss_default": []}
     res = run(cfg)
+    assert {(r["group"], r["seed"]) for r in res["records"]} == {("tuning", 0), ("held_out", 1)}
     levels = res["summary"]["levels"]
     assert {lv["group"] for lv in levels} == {"tuning", "held_out"} and all(lv["n"] == 1 for lv in levels)
     for lv in levels:
@@ -66,3 +67,6 @@ def test_two_real_meshes_run_every_method_and_resume(tmp_path):
     assert (tmp_path / "bench" / "report.md").is_file() and any(Path(tmp_path / "bench").glob("accuracy_vs_time_*.png"))
     again = run(cfg)  # every record is reused
     assert [r.get("metrics") for r in again["records"]] == [r.get("metrics") for r in res["records"]]
+    cfg.seeds_by_group = {"open": [0]}  # a group not in the run: refused before any work
+    with pytest.raises(ValueError, match="seeds_by_group.open: must name a group"):
+        run(cfg)

@@ -425,6 +425,10 @@ def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
     seeds = [int(s) for s in cfg.seeds]
     if any(p < 32 for p in points) or not all(n > 0 and math.isfinite(n) for n in noises):
         raise ValueError(f"points must be >= 32 and noise levels positive, got {points}, {noises}")
+    for g, v in (cfg.get("seeds_by_group") or {}).items():
+        if str(g) not in [str(x) for x in cfg.groups] or not all(int(x) in seeds for x in v):
+            raise ValueError(f"seeds_by_group.{g}: must name a group of groups {list(cfg.groups)} and seeds of "
+                             f"seeds {seeds}, got {list(v)}")
     if str(cfg.get("dss_noise", "estimate")) not in ("estimate", "given"):
         raise ValueError(f"dss_noise must be estimate or given, got {cfg.dss_noise!r}")
     for label, node in (cfg.classical or {}).items():
@@ -437,8 +441,9 @@ def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
 
 
 def _title_and_notes(cfg: DictConfig, shapes: list[dict], points, noises, seeds) -> tuple[str, list[str]]:
+    by_group = {str(g): list(v) for g, v in (cfg.get("seeds_by_group") or {}).items()}
     title = f"Real shapes: {', '.join(map(str, points))} points, noise {', '.join(f'{100 * n:g}%' for n in noises)} " \
-            f"x bbox diagonal, seeds {seeds}"
+            f"x bbox diagonal, seeds {seeds}" + "".join(f" ({g}: {v})" for g, v in by_group.items())
     notes = [f"shapes: {', '.join(sorted({c['name'] for c in shapes}))} (groups {list(cfg.groups)}, "
              "data_prep/real_split.yaml; held_out and open were not looked at while tuning)",
              f"DSS: dss-denoise with {'the noise estimated' if str(cfg.dss_noise) == 'estimate' else 'the noise given'}; "
@@ -520,7 +525,9 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out)
     n_methods = len(cfg.dss_methods or {}) + len(cfg.classical or {})
-    bar = tqdm(total=len(shapes) * len(points) * len(noises) * len(seeds) * n_methods, desc="real bench",
+    by_group = {str(g): [int(x) for x in v] for g, v in (cfg.get("seeds_by_group") or {}).items()}
+    n_seeds = sum(len([s for s in seeds if s in by_group.get(c["group"], seeds)]) for c in shapes)
+    bar = tqdm(total=n_seeds * len(points) * len(noises) * n_methods, desc="real bench",
                unit="run", disable=not cfg.get("progress", True), dynamic_ncols=True)
     records = []
     # cheap levels first: every case of one (points, noise, seed) before the next seed
@@ -528,7 +535,8 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
         for n in noises:
             for s in seeds:
                 for case in shapes:
-                    records += _run_case(cfg, out, case, p, n, s, bar)
+                    if s in by_group.get(case["group"], seeds):
+                        records += _run_case(cfg, out, case, p, n, s, bar)
     bar.close()
     summary = summarize_bench(records, cfg)
     title, notes = _title_and_notes(cfg, shapes, points, noises, seeds)
