@@ -142,7 +142,9 @@ def main(argv=None) -> int:
         runs[label] = json.loads(path.read_text())["records"]
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out.with_suffix(".json"), (json.dumps({"runs": runs}, indent=1) + "\n").encode())
+    command = "python -m pix2pix.learning_curve " + " ".join(sys.argv[1:] if argv is None else argv)
+    record = {"what": "validation metrics of training runs against CPU hours", "command": command, "runs": runs}
+    atomic_write_bytes(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
     plot_curves(runs, out.with_suffix(".png"), a.metrics)
     return 0
 

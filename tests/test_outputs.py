@@ -173,3 +173,21 @@ def test_denoise_table_publishes_only_the_summary_when_asked(tmp_path, monkeypat
     pub = {p.name for p in (tmp_path / "pub").iterdir()}
     assert pub == set(res["files"].values()) and {"table.md", "table.json", "README.md", "config.yaml"} <= pub
     assert (tmp_path / "pub" / "table.md").read_text() == (out / "table.md").read_text()
+
+
+def test_results_index_lists_a_real_shape_report_with_its_command(tmp_path):
+    """A dss-real-bench report under results/ gets its own section: the command from its README
+    and one row per (noise level, group) with the default, the best classical and the oracle."""
+    from experiments.evaluation.results_index import build
+
+    folder = tmp_path / "results" / "denoise" / "real_2000"
+    folder.mkdir(parents=True)
+    (folder / "README.md").write_text("# t\n\nProduced by:\n\n```\ndss-real-bench 'groups=[held_out]'\n```\n")
+    m = {k: {"chamfer": c, "hausdorff": h} for k, c, h in
+         (("input", 0.5, 20.0), ("best_classical", 0.25, 12.0), ("dss_default", 0.2, 13.0), ("dss_oracle", 0.15, 11.0))}
+    (folder / "report.json").write_text(json.dumps({"title": "Real shapes: test", "summary": {
+        "dss_methods": ["dss_default", "dss_oracle"], "classical": ["jet"],
+        "levels": [{"noise": 0.005, "group": "held_out", "n": 3, "mean": m}]}}))
+    text = build(tmp_path / "results")
+    assert "## Real shapes (`dss-real-bench`)" in text and "`dss-real-bench 'groups=[held_out]'`" in text
+    assert "| 0.5% | held_out | 3 | 0.5 / 20 | 0.25 / 12 | 0.2 / 13 | 0.15 / 11 |" in text

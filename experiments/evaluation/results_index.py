@@ -263,6 +263,25 @@ def _describe(d: dict) -> str:
     return ""
 
 
+def _real_bench(path: Path, d: dict, base: Path) -> list[str]:
+    """A ``dss-real-bench`` report: per noise level and group, the default job against the best
+    classical result per case, with the oracle control."""
+    folder = path.parent
+    command = _readme_command(folder) or "dss-real-bench (command not recorded)"
+    summary = d["summary"]
+    dss = [m for m in ("dss_default", "dss_oracle") if m in summary.get("dss_methods", [])]
+    rows = []
+    for lv in summary["levels"]:
+        m = lv["mean"]
+        pair = [f"{_fmt(m[k]['chamfer'])} / {_fmt(m[k]['hausdorff'])}" for k in ("input", "best_classical", *dss)]
+        rows.append([f"{100 * lv['noise']:g}%", lv["group"], str(lv["n"]), *pair])
+    return [f"### {d.get('title', _rel(folder, base))}", "",
+            f"`{command}` -> `{_rel(folder, base)}/` (`report.md` has every case, the detail measures and the "
+            "normal errors). Means over the cases, CD / HD; best classical: per case, the lowest value over "
+            "the classical entries.", "",
+            *_table(["noise", "group", "cases", "input", "best classical", *dss], rows), ""]
+
+
 # ---------------------------------------------------------------------------------- build
 def build(results: Path) -> str:
     """The markdown of ``results/README.md`` for the result files under ``results``."""
@@ -283,10 +302,13 @@ def build(results: Path) -> str:
                                     pd[1].get("points", 0), pd[0].as_posix()))  # paper's tables first
     runtimes = loaded(sorted(p for p in results.rglob("runtime_table*.json") if not in_sweep(p)))
     deforms = loaded(sorted(results.glob("deform/*/metrics.json")))
-    used = {p for p, _ in tables + runtimes + deforms} | set(sweeps)
+    reals = [(p, d) for p, d in loaded(sorted(results.rglob("report.json")))
+             if isinstance(d.get("summary"), dict) and "levels" in d["summary"]]
+    used = {p for p, _ in tables + runtimes + deforms + reals} | set(sweeps)
 
     lines = [HEADER]
-    for heading, items, section in (("Denoising tables (`dss-denoise-table`)", tables, _denoise_table),
+    for heading, items, section in (("Real shapes (`dss-real-bench`)", reals, _real_bench),
+                                    ("Denoising tables (`dss-denoise-table`)", tables, _denoise_table),
                                     ("Stability sweeps and budget study (`dss-sweep`)", loaded(sweeps), _sweep),
                                     ("Speed (`dss-runtime-table`)", runtimes, _runtime)):
         if items:
