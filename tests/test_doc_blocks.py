@@ -49,12 +49,14 @@ def test_publish_rewrites_a_stale_block_and_check_fails_until_then(tmp_path, cap
     assert "README.md:5" in capsys.readouterr().err
     data = json.loads((repo / BUDGETS).read_text())
     jet = next(r for r in data["rows"] if r["method"] == "cgal_jet")
+    ident = next(r for r in data["rows"] if r["method"] == "dss_identity")
+    assert ident["mean"]["chamfer"] < jet["mean"]["chamfer"]  # the tracked table: identity is the column's best
     assert main(["--results", str(repo / "results"), "--publish"]) == 0
     text = (repo / "README.md").read_text()
     assert text.startswith("# Title\n\nBefore.\n\n" + MARKER) and text.endswith("<!-- end generated -->\n\nAfter.\n")
     assert "| old | table |" not in text
     assert f"| jet | {jet['mean']['chamfer']:.3f} | {jet['cases']['kangaroo']['chamfer']:.3f} |" in text
-    assert "| identity | **0.416** |" in text  # the best of the column in bold
+    assert f"| identity | **{ident['mean']['chamfer']:.3f}** |" in text  # the best of the column in bold
     assert main(["--results", str(repo / "results"), "--check"]) == 0
     # a changed result makes the block stale again
     jet["mean"]["chamfer"] = 0.123
