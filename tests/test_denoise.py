@@ -119,6 +119,21 @@ def test_estimate_noise_level(family, seed):
         assert abs(est - level) / level < 0.25, (family, level, est)
 
 
+
+@pytest.mark.parametrize("family,seed", [("superquadric", 3), ("teapot", 2)])
+def test_estimate_noise_level_multiscale(family, seed):
+    mesh = make_shape(family, seed=seed, resolution=64)
+    clean = poisson_disk(mesh, 10000, seed=seed).points
+    assert estimate_noise_level(clean, method="multiscale") < 0.001
+    for level in (0.003, 0.01):
+        noisy = noisy_copy(clean, level, seed=seed + 1)
+        est = estimate_noise_level(noisy, method="multiscale")
+        assert abs(est - level) / level < 0.2, (family, level, est)
+    # the default is the quadric estimator, unchanged
+    assert estimate_noise_level(noisy) == estimate_noise_level(noisy, method="quadric")
+    with pytest.raises(ValueError, match="method"):
+        estimate_noise_level(noisy, method="nope")
+
 def test_select_model_by_noise(tmp_path, monkeypatch):
     import experiments.denoising.reference_generators as rg
 
