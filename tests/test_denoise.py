@@ -134,6 +134,26 @@ def test_estimate_noise_level_multiscale(family, seed):
     with pytest.raises(ValueError, match="method"):
         estimate_noise_level(noisy, method="nope")
 
+
+def test_the_job_takes_its_noise_estimator_from_the_config(tmp_path):
+    """noise_estimator=multiscale reaches the estimate (and metrics.json's noise block); an unknown
+    one is refused before any work."""
+    from dss.pointcloud import load_ply
+    from experiments.denoising import inputs, job
+
+    conf = str(Path(__file__).resolve().parents[1] / "conf")
+    with initialize_config_dir(config_dir=conf, version_base="1.3"):
+        assert compose("denoise").noise_estimator == "quadric"
+        bad = compose("denoise", ["noise_estimator=median"])
+    with pytest.raises(ValueError, match="noise_estimator must be one of"):
+        job.check(bad)
+    pts = load_ply(Path(__file__).resolve().parents[1] / "experiments/assets/example/noisy_1pct.ply",
+                   compute_normals=False).points
+    lv = inputs.noise_level(pts, None, "noisy.ply", "multiscale")
+    assert lv.to_dict()["estimator"] == "multiscale" and lv.estimated == estimate_noise_level(pts, method="multiscale")
+    assert abs(lv.used - 0.01) < 0.002
+
+
 def test_select_model_by_noise(tmp_path, monkeypatch):
     import experiments.denoising.reference_generators as rg
 

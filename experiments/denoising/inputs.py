@@ -48,9 +48,11 @@ class NoiseLevel:
     estimated: float
     used: float
     note: str | None
+    estimator: str = "quadric"
 
     def to_dict(self) -> dict:
-        return {"hint": self.hint, "estimated": self.estimated, "used": self.used, "note": self.note}
+        return {"hint": self.hint, "estimated": self.estimated, "used": self.used, "note": self.note,
+                "estimator": self.estimator}
 
 
 def input_files(cfg: DictConfig) -> InputFiles:
@@ -203,11 +205,11 @@ def noise_floor_note(path, estimated: float, hint: float | None) -> str | None:
     return note
 
 
-def noise_level(points, hint: float | None, path) -> NoiseLevel:
-    """The cloud's noise level (:func:`dss.pipeline.estimate_noise_level`; the ``hint`` when
-    given) and a note when the input looks noise-free (:func:`noise_floor_note`)."""
+def noise_level(points, hint: float | None, path, estimator: str = "quadric") -> NoiseLevel:
+    """The cloud's noise level (:func:`dss.pipeline.estimate_noise_level` with ``method=estimator``;
+    the ``hint`` when given) and a note when the input looks noise-free (:func:`noise_floor_note`)."""
     from dss.pipeline import estimate_noise_level
 
-    estimated = estimate_noise_level(points)
+    estimated = estimate_noise_level(points, method=estimator)
     used = hint if hint is not None else estimated
-    return NoiseLevel(hint, estimated, used, noise_floor_note(path, estimated, hint))
+    return NoiseLevel(hint, estimated, used, noise_floor_note(path, estimated, hint), estimator)

@@ -33,6 +33,9 @@ from experiments.denoising.scoring import score as score_points
 
 log = logging.getLogger(__name__)
 
+#: dss.pipeline.estimate_noise_level's methods (docs/denoising.md "The noise estimate")
+NOISE_ESTIMATORS = ("quadric", "multiscale")
+
 __all__ = ["Prepared", "GroundTruth", "Scores", "check", "prepare", "reference", "ground_truth", "refine", "write",
            "score", "floor", "draw", "record", "log_start", "log_end"]
 
@@ -92,6 +95,8 @@ def check(cfg: DictConfig) -> tuple[torch.device, float | None]:
     check_wandb(cfg.get("wandb"))
     dev = resolve_device(cfg.get("device"))
     hint = inputs.noise_hint(cfg.get("noise"))
+    if str(cfg.get("noise_estimator", "quadric")) not in NOISE_ESTIMATORS:
+        raise ValueError(f"noise_estimator must be one of {list(NOISE_ESTIMATORS)}, got {cfg.noise_estimator!r}")
     check_figures(cfg.get("figures"))
     return dev, hint
 
@@ -123,7 +128,7 @@ def prepare(cfg: DictConfig, files: inputs.InputFiles, hint: float | None, devic
     with clock("outliers"):
         cloud, outliers, removed = drop_outliers(cfg, cloud_in, report)
     with clock("noise_estimate"):
-        noise = inputs.noise_level(cloud.points, hint, files.input)
+        noise = inputs.noise_level(cloud.points, hint, files.input, str(cfg.get("noise_estimator", "quadric")))
     return Prepared(files, cloud_in, report, cloud, outliers, removed, noise, given, kernel_build)
 
 
