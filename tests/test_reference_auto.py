@@ -68,7 +68,7 @@ def test_the_job_resolves_auto_and_takes_the_entrys_fusion_settings(model):
     cfg.reference.table = OmegaConf.create({0.005: "identity", 0.01: {"reference": str(model),
                                                                       "fusion": {"reference_cloud": "refined"}}})
     gen, note = make_reference(cfg, 0.004)
-    assert gen.name == "identity" and "fusion" not in note and "reference_cloud" not in cfg.fusion
+    assert gen.name == "identity" and "fusion" not in note and cfg.fusion.reference_cloud == "input"
     gen, note = make_reference(cfg, 0.012)
     assert gen.name == "onnx" and cfg.fusion.reference_cloud == "refined"
     from experiments.denoising.settings import fusion_config
