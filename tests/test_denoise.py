@@ -143,7 +143,7 @@ def test_the_job_takes_its_noise_estimator_from_the_config(tmp_path):
 
     conf = str(Path(__file__).resolve().parents[1] / "conf")
     with initialize_config_dir(config_dir=conf, version_base="1.3"):
-        assert compose("denoise").noise_estimator == "quadric"
+        assert compose("denoise").noise_estimator == "multiscale"
         bad = compose("denoise", ["noise_estimator=median"])
     with pytest.raises(ValueError, match="noise_estimator must be one of"):
         job.check(bad)
