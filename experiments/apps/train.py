@@ -44,10 +44,21 @@ ARTEFACTS = ("denoiser.onnx", "denoiser.onnx.md", "metrics.json", "config.yaml",
 UNFINISHED = ("denoiser.onnx", "denoiser.onnx.md", "metrics.json")
 
 
+def _spawned_rank() -> int:
+    """This process's rank when Lightning's DDP launcher started it (``LOCAL_RANK``/``NODE_RANK``,
+    which it sets for the processes it spawns); 0 for the process a user starts."""
+    import os
+
+    return int(os.environ.get("LOCAL_RANK", 0) or 0) + int(os.environ.get("NODE_RANK", 0) or 0)
+
+
 def claim_run(cfg: DictConfig, out: Path, clear_records: bool = False) -> Path:
     """Claim the output directory ``out`` (experiments.common.claim_run_dir): an earlier run's
     results there are refused unless ``overwrite``, except when ``ckpt_path`` is a checkpoint of
-    that very run (a resume continues it in place)."""
+    that very run (a resume continues it in place). The processes Lightning's DDP launcher starts
+    for the other ranks share rank 0's claim."""
+    if _spawned_rank() != 0:
+        return Path(out)
     ckpt = cfg.get("ckpt_path")
     if ckpt and Path(str(ckpt)).resolve().is_relative_to(Path(out).resolve()):
         return claim_run_dir(out, ())  # resuming this run: its files stay
