@@ -10,32 +10,21 @@ with ``points`` (N, 3) float32 and ``normals`` (N, 3) float32 in the clean cloud
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CASCADE_FORMAT", "draw_noise", "read_cascade_manifest", "load_cascade_item"]
+__all__ = ["CASCADE_FORMAT", "read_cascade_manifest", "load_cascade_item"]
 
 CASCADE_FORMAT = "dss-cascade/1"
 
 
-def draw_noise(noise_range, seed_parts) -> float:
-    """A std drawn log-uniformly from ``noise_range`` (lo, hi) with a generator seeded by ``seed_parts``."""
-    lo, hi = (float(x) for x in noise_range)
-    u = np.random.default_rng(list(seed_parts)).random()
-    return float(math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))))
-
-
 def read_cascade_manifest(root) -> dict:
-    path = Path(root) / "manifest.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no cascade cache (make it with python -m experiments.denoising.cascade)")
-    m = json.loads(path.read_text())
-    if m.get("format") != CASCADE_FORMAT:
-        raise ValueError(f"{path}: format {m.get('format')!r}, expected {CASCADE_FORMAT!r}")
-    return m
+    """The manifest of a ``dss-cascade/1`` cache (ValueError when it is not one)."""
+    from data_prep.clouds import read_format_manifest
+
+    return read_format_manifest(root, CASCADE_FORMAT,
+                                "no cascade cache (make it with python -m experiments.denoising.cascade)")
 
 
 def load_cascade_item(root, entry: dict) -> tuple[np.ndarray, np.ndarray]:

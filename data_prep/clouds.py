@@ -99,15 +99,21 @@ def generate_clouds(pc: PrepConfig, spec: RenderSpec, out_dir, overwrite: bool =
     return stats
 
 
-def read_clouds_manifest(root) -> dict:
-    """The manifest of a ``dss-clouds/1`` dataset (ValueError when it is not one)."""
+def read_format_manifest(root, fmt: str, missing: str) -> dict:
+    """``<root>/manifest.json`` of a dataset whose ``format`` must be ``fmt``: FileNotFoundError
+    (``"<path>: <missing>"``) when there is none, ValueError when it is another format."""
     path = Path(root) / "manifest.json"
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no manifest (make the dataset with dss-prep output=clouds)")
+        raise FileNotFoundError(f"{path}: {missing}")
     m = json.loads(path.read_text())
-    if m.get("format") != CLOUDS_FORMAT:
-        raise ValueError(f"{path}: format {m.get('format')!r}, expected {CLOUDS_FORMAT!r}")
+    if m.get("format") != fmt:
+        raise ValueError(f"{path}: format {m.get('format')!r}, expected {fmt!r}")
     return m
+
+
+def read_clouds_manifest(root) -> dict:
+    """The manifest of a ``dss-clouds/1`` dataset (ValueError when it is not one)."""
+    return read_format_manifest(root, CLOUDS_FORMAT, "no manifest (make the dataset with dss-prep output=clouds)")
 
 
 def load_cloud(root, entry: dict) -> tuple[np.ndarray, np.ndarray]:

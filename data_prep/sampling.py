@@ -26,7 +26,7 @@ import numpy as np
 from .shapes.meshing import Mesh, to_open3d
 
 __all__ = ["Cloud", "SamplingError", "poisson_disk", "noisy_copy", "with_normals", "measured_noise_std",
-           "validate_sampling"]
+           "validate_sampling", "log_uniform"]
 
 
 class SamplingError(ValueError):
@@ -120,3 +120,9 @@ def measured_noise_std(clean: np.ndarray, noisy: np.ndarray) -> float:
     """Std of the per-coordinate displacement, as a fraction of the clean bbox diagonal."""
     diag = float(np.linalg.norm(clean.max(0) - clean.min(0)))
     return float(np.std((noisy - clean).astype(np.float64)) / diag)
+
+
+def log_uniform(noise_range, u: float) -> float:
+    """The value at ``u`` in [0, 1) of a log-uniform draw from ``noise_range`` (lo, hi)."""
+    lo, hi = (float(x) for x in noise_range)
+    return float(np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo))))

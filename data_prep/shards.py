@@ -270,9 +270,9 @@ def shape_noise(pc: PrepConfig, shape: ShapeItem, level: float) -> float:
     or with a ``noise_range`` a log-uniform draw from it, seeded by the shape."""
     if pc.noise_range is None:
         return float(level)
-    lo, hi = pc.noise_range
-    u = np.random.default_rng(_seed_int(shape.seed, 3)).random()
-    return float(np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo))))
+    from data_prep.sampling import log_uniform
+
+    return log_uniform(pc.noise_range, np.random.default_rng(_seed_int(shape.seed, 3)).random())
 
 
 def shape_mesh(shape: ShapeItem, pc: PrepConfig):

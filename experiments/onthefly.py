@@ -188,8 +188,9 @@ class CloudPairStream(PairStream):
         noise_seed = int(rng.integers(2**62))
         std = self.noise_level
         if self.noise_range is not None:  # log-uniform in the range, per shape and epoch
-            lo, hi = self.noise_range
-            std = float(np.exp(np.log(lo) + rng.random() * (np.log(hi) - np.log(lo))))
+            from data_prep.sampling import log_uniform
+
+            std = log_uniform(self.noise_range, rng.random())
         inp = None
         if self.cascade is not None:  # the cached draws of this shape, one per epoch in turn
             from data_prep.cascade_cache import load_cascade_item

@@ -39,7 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data_prep.cascade_cache import CASCADE_FORMAT, draw_noise, read_cascade_manifest
+from data_prep.cascade_cache import CASCADE_FORMAT, read_cascade_manifest
+from data_prep.sampling import log_uniform
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ def build_cache(data: str | Path, out: str | Path, per_family: int = 4, val_per_
             continue
         c0 = time.process_time()
         sid = int(hashlib.sha256(shape["shape_id"].encode()).hexdigest()[:8], 16)
-        std = draw_noise(noise_range, (seed, sid, d, 11))
+        std = log_uniform(noise_range, np.random.default_rng([seed, sid, d, 11]).random())
         nseed = int(np.random.default_rng([seed, sid, d, 13]).integers(2**62))
         pts, mn = load_cloud(data, shape)
         noisy = noisy_copy(pts, std, nseed)

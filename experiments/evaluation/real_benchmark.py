@@ -415,6 +415,11 @@ def plot_level(lv: dict, dss: list[str], classical: list[str], path: Path, title
 
 
 # ------------------------------------------------------------------------------ the app
+def _seeds_by_group(cfg: DictConfig) -> dict[str, list[int]]:
+    """``seeds_by_group`` as {group: [seeds]} (groups not named run every seed)."""
+    return {str(g): [int(x) for x in v] for g, v in (cfg.get("seeds_by_group") or {}).items()}
+
+
 def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
     """(points, noise levels, seeds), every setting checked before any work (the classical
     entries' methods and parameters too)."""
@@ -425,8 +430,8 @@ def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
     seeds = [int(s) for s in cfg.seeds]
     if any(p < 32 for p in points) or not all(n > 0 and math.isfinite(n) for n in noises):
         raise ValueError(f"points must be >= 32 and noise levels positive, got {points}, {noises}")
-    for g, v in (cfg.get("seeds_by_group") or {}).items():
-        if str(g) not in [str(x) for x in cfg.groups] or not all(int(x) in seeds for x in v):
+    for g, v in _seeds_by_group(cfg).items():
+        if g not in [str(x) for x in cfg.groups] or not all(x in seeds for x in v):
             raise ValueError(f"seeds_by_group.{g}: must name a group of groups {list(cfg.groups)} and seeds of "
                              f"seeds {seeds}, got {list(v)}")
     if str(cfg.get("dss_noise", "estimate")) not in ("estimate", "given"):
@@ -441,7 +446,7 @@ def _levels(cfg: DictConfig) -> tuple[list[int], list[float], list[int]]:
 
 
 def _title_and_notes(cfg: DictConfig, shapes: list[dict], points, noises, seeds) -> tuple[str, list[str]]:
-    by_group = {str(g): list(v) for g, v in (cfg.get("seeds_by_group") or {}).items()}
+    by_group = _seeds_by_group(cfg)
     title = f"Real shapes: {', '.join(map(str, points))} points, noise {', '.join(f'{100 * n:g}%' for n in noises)} " \
             f"x bbox diagonal, seeds {seeds}" + "".join(f" ({g}: {v})" for g, v in by_group.items())
     notes = [f"shapes: {', '.join(sorted({c['name'] for c in shapes}))} (groups {list(cfg.groups)}, "
@@ -525,7 +530,7 @@ def run(cfg: DictConfig, command: str | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out)
     n_methods = len(cfg.dss_methods or {}) + len(cfg.classical or {})
-    by_group = {str(g): [int(x) for x in v] for g, v in (cfg.get("seeds_by_group") or {}).items()}
+    by_group = _seeds_by_group(cfg)
     n_seeds = sum(len([s for s in seeds if s in by_group.get(c["group"], seeds)]) for c in shapes)
     bar = tqdm(total=n_seeds * len(points) * len(noises) * n_methods, desc="real bench",
                unit="run", disable=not cfg.get("progress", True), dynamic_ncols=True)
