@@ -18,6 +18,7 @@ from experiments.denoising import settings as st
 REPO = Path(__file__).resolve().parents[1]
 PINS = Path(__file__).with_name("data") / "denoise_settings_pins.json"
 AUTO = ("cycles", "lr_points", "projection_weight", "reg_cutoff", "final_projection_k")
+RIM = ("rim_k", "rim_ratio", "rim_target", "rim_iterations")
 
 
 def compose_denoise(overrides: list[str]):
@@ -51,7 +52,8 @@ def _pinned_config(pins: dict, overrides: list[str], reference: str):
         cfg.optimizer.max_displacement = 0.0
     cfg.sparse_rate_power = 0.0
     cfg.max_move_by_noise = None
-    cfg.optimizer.rim_k = 0
+    for key in RIM:  # absent: OptimizerConfig's default, rim_k 0 (off)
+        del cfg.optimizer[key]
     if cfg.get("fusion") is not None:
         cfg.fusion.weight_by_noise = None
     if reference == "identity" and cfg.channel.name == "auto":
@@ -150,9 +152,14 @@ def test_shipped_config_resolves_every_auto_setting():
     cfg = compose_denoise(["reference=identity"])
     for noise in (0.001, 0.003, 0.01, 0.02, 0.05):
         values, notes = st.noise_settings(cfg, noise)
-        auto = (*AUTO, "max_displacement")  # the shipped config bounds the displacement (auto) too
+        auto = (*AUTO, *RIM, "max_displacement")  # the shipped config bounds the displacement (auto) too
         assert set(notes) == set(auto) and all(notes[k]["setting"] == "auto" for k in auto)
         assert values["cycles"] >= 1 and values["lr_points"] > 0 and values["final_projection_k"] >= 1
+        assert values["rim_k"] >= 1 and values["rim_iterations"] >= 1 and values["rim_ratio"] > values["rim_target"] > 0
+    # the rim pull: gentle to 0.5% (a thin part's last samples are surface), firmer from 1%
+    low, high = st.noise_settings(cfg, 0.004)[0], st.noise_settings(cfg, 0.012)[0]
+    assert low["rim_ratio"] > high["rim_ratio"] and low["rim_target"] > high["rim_target"]
+    assert low["rim_k"] <= high["rim_k"] and low["rim_iterations"] <= high["rim_iterations"]
 
 
 def test_neighbourhood_dilation_follows_density():

@@ -28,7 +28,8 @@ __all__ = ["Settings", "resolve", "interpolate_by_noise", "by_noise", "noise_set
 
 #: optimiser settings that may be ``auto`` (taken from ``<key>_by_noise`` in conf/denoise.yaml)
 BY_NOISE = (("cycles", int), ("lr_points", float), ("projection_weight", float), ("reg_cutoff", float),
-            ("final_projection_k", int))
+            ("final_projection_k", int), ("rim_k", int), ("rim_ratio", float), ("rim_target", float),
+            ("rim_iterations", int))
 #: the render channels of ``conf/denoise_parts/channel/``
 CHANNELS = ("auto", "planes", "sun", "point")
 
@@ -47,7 +48,8 @@ class Settings:
         shading: what the renders show: ``"planes"``, ``"sun"`` or a point light.
         shading_name: its name (``metrics.json`` ``render.shading``).
         notes: ``{key: what was chosen and why}`` for cycles, lr_points, projection_weight,
-            reg_cutoff, final_projection_k, max_displacement (when auto) and reg_dilation.
+            reg_cutoff, final_projection_k, the rim pull's rim_k, rim_ratio, rim_target and
+            rim_iterations, max_displacement (when auto) and reg_dilation.
         budget: the budget preset's note (``metrics.json`` ``budget``).
         config: a copy of the job's config holding the values in use (``config.yaml``).
     """
@@ -116,7 +118,8 @@ def noise_settings(cfg: DictConfig, noise: float, n_points: int | None = None) -
     levels) and, given the point count, the neighbourhood (:func:`neighbourhood`)."""
     values, notes = {}, {}
     for key, cast in BY_NOISE:
-        values[key], notes[key] = by_noise(cfg, noise, key, cast)
+        if key in cfg.optimizer:  # a key the config does not name keeps OptimizerConfig's default
+            values[key], notes[key] = by_noise(cfg, noise, key, cast)
     cyc, lr = notes["cycles"], notes["lr_points"]
     if cyc["setting"] == "auto" and lr["setting"] == "auto" and cyc["exact"] != cyc["used"]:
         # cycles are whole; the point rate takes the rounding so that cycles x rate (how far the
