@@ -174,7 +174,9 @@ class OptimizerConfig:
     # re-fits every step (1). The fit is most of a denoising step's regulariser time.
     frames_every: int = 1
     # > 0: after the last cycle, project points onto the plane of their final_projection_k
-    # (x reg_dilation) nearest (dss.regularizers.project_to_neighbour_planes); 0: the paper (none).
+    # nearest (dss.regularizers.project_to_neighbour_planes; plain neighbours, not reg_dilation's
+    # spread ones: on a dense cloud a spread patch is too wide to follow the surface near a tip,
+    # so the outliers there go unflagged); 0: the paper (none).
     # final_projection_threshold t > 0 moves only the outliers (plane distance > t robust
     # sigmas and > final_projection_local_ratio x their neighbours' median, onto their nearest
     # inliers' plane), final_projection_iterations times; t = 0: every point
@@ -287,12 +289,12 @@ class OptimizerConfig:
     def min_points(self) -> int:
         """The fewest points this configuration can optimise: more than the largest neighbour
         list it asks for (regularisers: reg_k x reg_dilation; final projection:
-        final_projection_k x reg_dilation; normal refresh: normal_refresh_k)."""
+        final_projection_k; normal refresh: normal_refresh_k)."""
         need = 3
         if self.projection_weight > 0 or self.repulsion_weight > 0:
             need = max(need, self.reg_k * self.reg_dilation + 1)
         if self.final_projection_k > 0:
-            need = max(need, self.final_projection_k * self.reg_dilation + 1)
+            need = max(need, self.final_projection_k + 1)
         if self.normal_refresh != "none":
             need = max(need, max(self.normal_refresh_k, self.final_normal_refresh_k) + 1)
         return need
@@ -808,7 +810,7 @@ class MultiViewOptimizer:
         c = self.cfg
         with torch.no_grad():
             if c.final_projection_k > 0:
-                points = project_to_neighbour_planes(points, c.final_projection_k, c.reg_dilation,
+                points = project_to_neighbour_planes(points, c.final_projection_k, 1,
                                                      threshold=c.final_projection_threshold,
                                                      local_ratio=c.final_projection_local_ratio,
                                                      iterations=c.final_projection_iterations)

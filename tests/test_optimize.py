@@ -169,6 +169,17 @@ def test_final_projection_pulls_in_a_tail_point_after_the_last_cycle():
     assert abs(float(out[32][0, 2])) < 0.03
     moved = (out[32] - out[0]).norm(dim=-1) > 0
     assert int(moved.sum()) < 0.02 * len(pts)
+    # on a dense cloud the regularisers spread their neighbours (reg_dilation); the final projection
+    # keeps the plain k nearest, whose plane follows the surface near tips
+    from dss.regularizers import project_to_neighbour_planes
+
+    cfg = OptimizerConfig(cycles=1, normal_steps=2, point_steps=0, views=1, final_projection_k=32, reg_dilation=5)
+    assert cfg.min_points() == cfg.reg_k * 5 + 1  # the regularisers' list, not 32 x 5
+    opt = MultiViewOptimizer(pts, nrm, ref, cfg, st, sampler=sampler, shading=SUN, image_size=32)
+    plain = project_to_neighbour_planes(pts, 32, 1, threshold=cfg.final_projection_threshold,
+                                        local_ratio=cfg.final_projection_local_ratio,
+                                        iterations=cfg.final_projection_iterations)
+    assert torch.equal(opt.project_outliers(pts), plain) and abs(float(plain[0, 2])) < 0.03
     with pytest.raises(ValueError, match="final_projection"):
         OptimizerConfig(final_projection_local_ratio=-1.0)
     with pytest.raises(ValueError, match="final_projection_iterations"):
