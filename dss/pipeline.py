@@ -298,6 +298,36 @@ NOISE_CALIBRATION = ((0.0, 0.0), (0.00222, 0.002), (0.00315, 0.003), (0.00491, 0
                      (0.01106, 0.02))
 
 
+def _unit_queries(points, k: int, queries: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(points in units of the bounding-box diagonal, ``queries`` random query indices, the
+    diagonal): the common start of the local quadric fits. ``k`` (the largest patch) must be >= 10."""
+    p = points.detach().cpu().double().numpy() if isinstance(points, torch.Tensor) else np.asarray(points, np.float64)
+    if k < 10:
+        raise ValueError(f"need at least 10 points for a local quadric fit, got {len(p)}")
+    # fitted in units of the bounding-box diagonal, so that the fit's small ridge term means the
+    # same at any scale of the input (a cloud in km or in um)
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    diag = diag if diag > 0 else 1.0
+    p = (p - p.min(0)) / diag
+    rng = np.random.default_rng(seed)
+    return p, rng.choice(len(p), min(queries, len(p)), replace=False), diag
+
+
+def _quadric_rms(nb: np.ndarray) -> np.ndarray:
+    """(Q, k, 3) neighbourhoods -> (Q,) rms residual of a least-squares quadric height field in
+    each one's PCA frame (dof-corrected: k - 6)."""
+    k = nb.shape[1]
+    nb = nb - nb.mean(1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("qki,qkj->qij", nb, nb) / k)
+    loc = np.einsum("qki,qij->qkj", nb, vec)  # columns: normal (smallest eigenvalue), t1, t2
+    h, u, v = loc[..., 0], loc[..., 1], loc[..., 2]
+    A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], -1)
+    AtA = np.einsum("qki,qkj->qij", A, A) + 1e-12 * np.eye(6)
+    coef = np.linalg.solve(AtA, np.einsum("qki,qk->qi", A, h)[..., None])[..., 0]
+    r = h - np.einsum("qki,qi->qk", A, coef)
+    return np.sqrt((r**2).sum(1) / (k - 6))
+
+
 def local_quadric_residual(points, k: int, queries: int = 2000, seed: int = 0) -> np.ndarray:
     """Per query point: the rms residual of a least-squares quadric height field fitted to its
     ``k`` nearest neighbours in their PCA frame (dof-corrected), in the input's units.
@@ -307,30 +337,14 @@ def local_quadric_residual(points, k: int, queries: int = 2000, seed: int = 0) -
     """
     from scipy.spatial import cKDTree
 
-    p = points.detach().cpu().double().numpy() if isinstance(points, torch.Tensor) else np.asarray(points, np.float64)
-    n = len(p)
-    k = int(min(k, n))
-    if k < 10:
-        raise ValueError(f"need at least 10 points for a local quadric fit, got {n}")
-    # fitted in units of the bounding-box diagonal, so that the fit's small ridge term means the
-    # same at any scale of the input (a cloud in km or in um); the residual comes back in input units
-    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
-    diag = diag if diag > 0 else 1.0
-    p = (p - p.min(0)) / diag
-    rng = np.random.default_rng(seed)
-    q = rng.choice(n, min(queries, n), replace=False)
+    k = int(min(k, len(points)))
+    p, q, diag = _unit_queries(points, k, queries, seed)
     _, idx = cKDTree(p).query(p[q], k=k)
-    nb = p[idx]
-    nb = nb - nb.mean(1, keepdims=True)
-    cov = np.einsum("qki,qkj->qij", nb, nb) / k
-    _, vec = np.linalg.eigh(cov)
-    loc = np.einsum("qki,qij->qkj", nb, vec)  # columns: normal (smallest eigenvalue), t1, t2
-    h, u, v = loc[..., 0], loc[..., 1], loc[..., 2]
-    A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], -1)
-    AtA = np.einsum("qki,qkj->qij", A, A) + 1e-12 * np.eye(6)
-    coef = np.linalg.solve(AtA, np.einsum("qki,qk->qi", A, h)[..., None])[..., 0]
-    r = h - np.einsum("qki,qi->qk", A, coef)
-    return np.sqrt((r**2).sum(1) / (k - 6)) * diag
+    return _quadric_rms(p[idx]) * diag
+
+
+#: the methods of :func:`estimate_noise_level`
+NOISE_METHODS = ("quadric", "multiscale")
 
 
 def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24, k_max: int = 256,
@@ -366,8 +380,8 @@ def estimate_noise_level(points, patch_fraction: float = 0.0032, k_min: int = 24
     Returns:
         the estimated noise std fraction (float).
     """
-    if method not in ("quadric", "multiscale"):
-        raise ValueError(f"method must be 'quadric' or 'multiscale', got {method!r}")
+    if method not in NOISE_METHODS:
+        raise ValueError(f"method must be one of {list(NOISE_METHODS)}, got {method!r}")
     p = points.detach().cpu().double().numpy() if isinstance(points, torch.Tensor) else np.asarray(points, np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {p.shape}")
@@ -411,28 +425,11 @@ def residual_profile(points, ks, queries: int = 2000, seed: int = 0) -> tuple[np
     same ``queries`` random points (one neighbour search). Returns two (len(ks),) float64 arrays."""
     from scipy.spatial import cKDTree
 
-    p = points.detach().cpu().double().numpy() if isinstance(points, torch.Tensor) else np.asarray(points, np.float64)
-    ks = [int(min(k, len(p))) for k in ks]
-    if min(ks) < 10:
-        raise ValueError(f"need at least 10 points for a local quadric fit, got {len(p)}")
-    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
-    p = (p - p.min(0)) / (diag if diag > 0 else 1.0)
-    rng = np.random.default_rng(seed)
-    q = rng.choice(len(p), min(queries, len(p)), replace=False)
+    ks = [int(min(k, len(points))) for k in ks]
+    p, q, _ = _unit_queries(points, min(ks), queries, seed)
     dist, idx = cKDTree(p).query(p[q], k=max(ks))
-    med, rad = [], []
-    for k in ks:
-        nb = p[idx[:, :k]]
-        nb = nb - nb.mean(1, keepdims=True)
-        _, vec = np.linalg.eigh(np.einsum("qki,qkj->qij", nb, nb) / k)
-        loc = np.einsum("qki,qij->qkj", nb, vec)
-        h, u, v = loc[..., 0], loc[..., 1], loc[..., 2]
-        A = np.stack([u * u, u * v, v * v, u, v, np.ones_like(u)], -1)
-        AtA = np.einsum("qki,qkj->qij", A, A) + 1e-12 * np.eye(6)
-        coef = np.linalg.solve(AtA, np.einsum("qki,qk->qi", A, h)[..., None])[..., 0]
-        r = h - np.einsum("qki,qi->qk", A, coef)
-        med.append(float(np.median(np.sqrt((r**2).sum(1) / (k - 6)))))
-        rad.append(float(np.median(dist[:, k - 1])))
+    med = [float(np.median(_quadric_rms(p[idx[:, :k]]))) for k in ks]
+    rad = [float(np.median(dist[:, k - 1])) for k in ks]
     return np.array(med), np.array(rad)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from dss.pipeline import NOISE_METHODS
 from dss.schedule import interpolate_by_noise
 from experiments.denoising import inputs, references
 from experiments.denoising.figures import check_figures, write_figures
@@ -32,9 +33,6 @@ from experiments.denoising.scoring import chamfer_floor, log_summary, normal_err
 from experiments.denoising.scoring import score as score_points
 
 log = logging.getLogger(__name__)
-
-#: dss.pipeline.estimate_noise_level's methods (docs/denoising.md "The noise estimate")
-NOISE_ESTIMATORS = ("quadric", "multiscale")
 
 __all__ = ["Prepared", "GroundTruth", "Scores", "check", "prepare", "reference", "ground_truth", "refine", "write",
            "score", "floor", "draw", "record", "log_start", "log_end"]
@@ -95,8 +93,8 @@ def check(cfg: DictConfig) -> tuple[torch.device, float | None]:
     check_wandb(cfg.get("wandb"))
     dev = resolve_device(cfg.get("device"))
     hint = inputs.noise_hint(cfg.get("noise"))
-    if str(cfg.get("noise_estimator", "quadric")) not in NOISE_ESTIMATORS:
-        raise ValueError(f"noise_estimator must be one of {list(NOISE_ESTIMATORS)}, got {cfg.noise_estimator!r}")
+    if str(cfg.get("noise_estimator", "quadric")) not in NOISE_METHODS:
+        raise ValueError(f"noise_estimator must be one of {list(NOISE_METHODS)}, got {cfg.noise_estimator!r}")
     check_figures(cfg.get("figures"))
     return dev, hint
 
